@@ -1,0 +1,297 @@
+//! Fitting hyper-parameters: what users may set (`FitParams`, every field optional with the
+//! defaults of method.md), checked once into `ValidFitParams` that the loops trust.
+
+use serde::{Deserialize, Serialize};
+
+/// The fitting method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Method {
+    /// Neural trajectory prior with the multi-body rigidity loss (the default).
+    #[default]
+    Mbnt,
+    /// Neural trajectory prior (Chamfer + cycle consistency).
+    Ntp,
+    /// Pair-wise neural scene-flow prior with the multi-body loss, chained by forward Euler.
+    Mbnsf,
+    /// Pair-wise neural scene-flow prior, chained by forward Euler.
+    Nsfp,
+}
+
+impl Method {
+    /// All methods, in a stable order.
+    pub const ALL: [Method; 4] = [Method::Mbnt, Method::Ntp, Method::Mbnsf, Method::Nsfp];
+
+    /// The lower-case name used in the API and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Mbnt => "mbnt",
+            Method::Ntp => "ntp",
+            Method::Mbnsf => "mbnsf",
+            Method::Nsfp => "nsfp",
+        }
+    }
+
+    /// Whether the method fits one trajectory network for the whole sequence.
+    pub fn is_trajectory(self) -> bool {
+        matches!(self, Method::Mbnt | Method::Ntp)
+    }
+
+    /// Whether the method uses the multi-body rigidity loss.
+    pub fn uses_rigidity(self) -> bool {
+        matches!(self, Method::Mbnt | Method::Mbnsf)
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("unknown method {s:?} (expected mbnt, ntp, mbnsf or nsfp)"))
+    }
+}
+
+/// User-facing hyper-parameters. Every field is optional; `None` takes the method's default
+/// (method.md). Unknown fields are rejected when deserialising.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FitParams {
+    /// Optimiser iterations: 1001 for NTP/MBNT; at most 1000 per pair for NSFP/MBNSF.
+    pub iterations: Option<usize>,
+    /// Seed of every random choice (initialisation, reference frames, subsampling).
+    pub seed: Option<u64>,
+    /// Adam learning rate (default 0.003).
+    pub learning_rate: Option<f32>,
+    /// The learning rate halves every this many iterations (default 500; trajectory methods).
+    pub lr_halve_every: Option<usize>,
+    /// Reference frames drawn (with replacement) per iteration (default 4; trajectory methods).
+    pub reference_frames: Option<usize>,
+    /// Every this many iterations is a validation iteration (default 25; trajectory methods).
+    pub validate_every: Option<usize>,
+    /// Hidden width of the MLP (default 128).
+    pub hidden_width: Option<usize>,
+    /// Number of hidden Linear+ReLU layers (default 8).
+    pub hidden_layers: Option<usize>,
+    /// Chamfer truncation on the squared distance, m^2 (default 2.0).
+    pub chamfer_truncation_m2: Option<f32>,
+    /// Weight of the cycle-consistency loss (default 1.0; trajectory methods).
+    pub cycle_weight: Option<f32>,
+    /// Weight of the multi-body loss (default 1.0; MBNT and MBNSF).
+    pub rigidity_weight: Option<f32>,
+    /// DBSCAN radius, m (default 0.8).
+    pub dbscan_eps_m: Option<f32>,
+    /// DBSCAN minimum neighbourhood size, the point itself included (default 30).
+    pub dbscan_min_points: Option<usize>,
+    /// Larger clusters are randomly subsampled to this many points per evaluation (default 3000).
+    pub max_cluster_points: Option<usize>,
+    /// Power-iteration steps at most (default 10).
+    pub power_iterations: Option<usize>,
+    /// MBNT distance threshold at t = 0, m (default 0.10); grows by `d_thr_slope_m * t / T`.
+    pub d_thr_base_m: Option<f32>,
+    /// MBNT distance-threshold growth over the sequence, m (default 0.39).
+    pub d_thr_slope_m: Option<f32>,
+    /// MBNSF distance threshold, m (default 0.03).
+    pub pair_d_thr_m: Option<f32>,
+    /// NSFP/MBNSF early-stopping patience in iterations (default 100).
+    pub early_stop_patience: Option<usize>,
+    /// NSFP/MBNSF early-stopping minimum improvement of the loss (default 1e-4).
+    pub early_stop_min_delta: Option<f32>,
+    /// Remove ground points before fitting (default true).
+    pub remove_ground: Option<bool>,
+    /// Drop points farther than this from the sensor, m (default 80).
+    pub max_range_m: Option<f32>,
+}
+
+/// A parameter that is out of range, by name.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("parameter `{name}` {problem}")]
+pub struct FitParamsError {
+    /// The parameter's field name.
+    pub name: &'static str,
+    /// What is wrong with it.
+    pub problem: String,
+}
+
+/// Hyper-parameters checked for one method, with every default filled in.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ValidFitParams {
+    /// See [`FitParams::iterations`].
+    pub iterations: usize,
+    /// See [`FitParams::seed`].
+    pub seed: u64,
+    /// See [`FitParams::learning_rate`].
+    pub learning_rate: f32,
+    /// See [`FitParams::lr_halve_every`].
+    pub lr_halve_every: usize,
+    /// See [`FitParams::reference_frames`].
+    pub reference_frames: usize,
+    /// See [`FitParams::validate_every`].
+    pub validate_every: usize,
+    /// See [`FitParams::hidden_width`].
+    pub hidden_width: usize,
+    /// See [`FitParams::hidden_layers`].
+    pub hidden_layers: usize,
+    /// See [`FitParams::chamfer_truncation_m2`].
+    pub chamfer_truncation_m2: f32,
+    /// See [`FitParams::cycle_weight`].
+    pub cycle_weight: f32,
+    /// See [`FitParams::rigidity_weight`].
+    pub rigidity_weight: f32,
+    /// See [`FitParams::dbscan_eps_m`].
+    pub dbscan_eps_m: f32,
+    /// See [`FitParams::dbscan_min_points`].
+    pub dbscan_min_points: usize,
+    /// See [`FitParams::max_cluster_points`].
+    pub max_cluster_points: usize,
+    /// See [`FitParams::power_iterations`].
+    pub power_iterations: usize,
+    /// See [`FitParams::d_thr_base_m`].
+    pub d_thr_base_m: f32,
+    /// See [`FitParams::d_thr_slope_m`].
+    pub d_thr_slope_m: f32,
+    /// See [`FitParams::pair_d_thr_m`].
+    pub pair_d_thr_m: f32,
+    /// See [`FitParams::early_stop_patience`].
+    pub early_stop_patience: usize,
+    /// See [`FitParams::early_stop_min_delta`].
+    pub early_stop_min_delta: f32,
+    /// See [`FitParams::remove_ground`].
+    pub remove_ground: bool,
+    /// See [`FitParams::max_range_m`].
+    pub max_range_m: f32,
+}
+
+/// Upper bound on iterations accepted from users, so one job cannot occupy a worker for days.
+pub const MAX_ITERATIONS: usize = 100_000;
+
+impl FitParams {
+    /// Fills in `method`'s defaults and checks every range; the error names the parameter.
+    pub fn check(&self, method: Method) -> Result<ValidFitParams, FitParamsError> {
+        fn bad(name: &'static str, problem: impl Into<String>) -> FitParamsError {
+            FitParamsError {
+                name,
+                problem: problem.into(),
+            }
+        }
+        fn int_in(
+            name: &'static str,
+            v: Option<usize>,
+            default: usize,
+            lo: usize,
+            hi: usize,
+        ) -> Result<usize, FitParamsError> {
+            let v = v.unwrap_or(default);
+            if v < lo || v > hi {
+                return Err(bad(name, format!("must be in [{lo}, {hi}], got {v}")));
+            }
+            Ok(v)
+        }
+        fn float_in(
+            name: &'static str,
+            v: Option<f32>,
+            default: f32,
+            lo: f32,
+            hi: f32,
+        ) -> Result<f32, FitParamsError> {
+            let v = v.unwrap_or(default);
+            if !v.is_finite() || v < lo || v > hi {
+                return Err(bad(
+                    name,
+                    format!("must be a finite number in [{lo}, {hi}], got {v}"),
+                ));
+            }
+            Ok(v)
+        }
+        let default_iterations = if method.is_trajectory() { 1001 } else { 1000 };
+        Ok(ValidFitParams {
+            iterations: int_in(
+                "iterations",
+                self.iterations,
+                default_iterations,
+                1,
+                MAX_ITERATIONS,
+            )?,
+            seed: self.seed.unwrap_or(0),
+            learning_rate: float_in("learning_rate", self.learning_rate, 0.003, 1e-7, 1.0)?,
+            lr_halve_every: int_in(
+                "lr_halve_every",
+                self.lr_halve_every,
+                500,
+                1,
+                MAX_ITERATIONS,
+            )?,
+            reference_frames: int_in("reference_frames", self.reference_frames, 4, 1, 64)?,
+            validate_every: int_in("validate_every", self.validate_every, 25, 1, MAX_ITERATIONS)?,
+            hidden_width: int_in("hidden_width", self.hidden_width, 128, 4, 1024)?,
+            hidden_layers: int_in("hidden_layers", self.hidden_layers, 8, 1, 16)?,
+            chamfer_truncation_m2: float_in(
+                "chamfer_truncation_m2",
+                self.chamfer_truncation_m2,
+                2.0,
+                1e-6,
+                1e6,
+            )?,
+            cycle_weight: float_in("cycle_weight", self.cycle_weight, 1.0, 0.0, 1e3)?,
+            rigidity_weight: float_in("rigidity_weight", self.rigidity_weight, 1.0, 0.0, 1e3)?,
+            dbscan_eps_m: float_in("dbscan_eps_m", self.dbscan_eps_m, 0.8, 1e-3, 10.0)?,
+            dbscan_min_points: int_in("dbscan_min_points", self.dbscan_min_points, 30, 1, 10_000)?,
+            max_cluster_points: int_in(
+                "max_cluster_points",
+                self.max_cluster_points,
+                3000,
+                3,
+                20_000,
+            )?,
+            power_iterations: int_in("power_iterations", self.power_iterations, 10, 1, 1000)?,
+            d_thr_base_m: float_in("d_thr_base_m", self.d_thr_base_m, 0.10, 1e-4, 10.0)?,
+            d_thr_slope_m: float_in("d_thr_slope_m", self.d_thr_slope_m, 0.39, 0.0, 10.0)?,
+            pair_d_thr_m: float_in("pair_d_thr_m", self.pair_d_thr_m, 0.03, 1e-4, 10.0)?,
+            early_stop_patience: int_in(
+                "early_stop_patience",
+                self.early_stop_patience,
+                100,
+                1,
+                MAX_ITERATIONS,
+            )?,
+            early_stop_min_delta: float_in(
+                "early_stop_min_delta",
+                self.early_stop_min_delta,
+                1e-4,
+                0.0,
+                1e3,
+            )?,
+            remove_ground: self.remove_ground.unwrap_or(true),
+            max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_follow_the_method_document() {
+        let p = FitParams::default().check(Method::Mbnt).unwrap();
+        assert_eq!(p.iterations, 1001);
+        assert_eq!(p.learning_rate, 0.003);
+        assert_eq!(p.dbscan_min_points, 30);
+        assert_eq!(
+            FitParams::default().check(Method::Nsfp).unwrap().iterations,
+            1000
+        );
+    }
+
+    #[test]
+    fn an_out_of_range_parameter_is_named() {
+        let p = FitParams {
+            learning_rate: Some(-1.0),
+            ..Default::default()
+        };
+        assert_eq!(p.check(Method::Ntp).unwrap_err().name, "learning_rate");
+        let e = serde_json::from_str::<FitParams>(r#"{"iterations": 5, "bogus": 1}"#).unwrap_err();
+        assert!(e.to_string().contains("bogus"), "{e}");
+    }
+}
