@@ -25,4 +25,5 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod metrics;
 pub mod trajectory;
