@@ -40,10 +40,7 @@ pub enum QueryError {
 impl TimeAxis {
     /// A time axis over `frames` frames, in seconds when `timestamps_s` is given.
     pub fn new(timestamps_s: Option<Vec<f64>>, frames: usize) -> Self {
-        Self {
-            timestamps_s,
-            frames,
-        }
+        Self { timestamps_s, frames }
     }
 
     /// Number of frames T.
@@ -75,10 +72,7 @@ impl TimeAxis {
             return Ok(time);
         };
         // The last k with ts[k] <= time, so that ts[k] <= time < ts[k + 1].
-        let k = ts
-            .partition_point(|&t| t <= time)
-            .saturating_sub(1)
-            .min(self.frames - 2);
+        let k = ts.partition_point(|&t| t <= time).saturating_sub(1).min(self.frames - 2);
         Ok(k as f64 + (time - ts[k]) / (ts[k + 1] - ts[k]))
     }
 }
@@ -101,11 +95,7 @@ pub struct FittedModel {
 impl FittedModel {
     /// TEMPORARY (issue 2): a model in which nothing moves.
     pub fn zero_motion(time_axis: TimeAxis) -> Self {
-        Self {
-            method: Method::Mbnt,
-            time_axis,
-            motion: Motion::Zero,
-        }
+        Self { method: Method::Mbnt, time_axis, motion: Motion::Zero }
     }
 
     /// The method that produced the model.
@@ -122,12 +112,7 @@ impl FittedModel {
     ///
     /// Returns a point-major array: entry `i * times.len() + j` is point i at `times[j]`, in
     /// the sensor frame of time `times[j]`.
-    pub fn positions(
-        &self,
-        points: &[Point],
-        t_obs: f64,
-        times: &[f64],
-    ) -> Result<Vec<Point>, QueryError> {
+    pub fn positions(&self, points: &[Point], t_obs: f64, times: &[f64]) -> Result<Vec<Point>, QueryError> {
         if let Some(index) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
             return Err(QueryError::NonFinitePoint { index });
         }
@@ -136,10 +121,7 @@ impl FittedModel {
             self.time_axis.to_frame_index(t)?;
         }
         match self.motion {
-            Motion::Zero => Ok(points
-                .iter()
-                .flat_map(|p| std::iter::repeat_n(*p, times.len()))
-                .collect()),
+            Motion::Zero => Ok(points.iter().flat_map(|p| std::iter::repeat_n(*p, times.len())).collect()),
         }
     }
 
@@ -151,14 +133,8 @@ impl FittedModel {
             .map(|k| {
                 let from = self.time_axis.frame_time(k);
                 let to = self.time_axis.frame_time(k + 1);
-                let moved = self
-                    .positions(&frames[k], from, &[to])
-                    .expect("frame times are in range");
-                frames[k]
-                    .iter()
-                    .zip(&moved)
-                    .map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]])
-                    .collect()
+                let moved = self.positions(&frames[k], from, &[to]).expect("frame times are in range");
+                frames[k].iter().zip(&moved).map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]).collect()
             })
             .collect()
     }
@@ -172,9 +148,7 @@ impl FittedModel {
 
     /// Reads a model written by [`FittedModel::to_bytes`].
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
-        let body = bytes
-            .strip_prefix(MODEL_MAGIC)
-            .ok_or("not an mbnt model file (bad magic or version)")?;
+        let body = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
         serde_json::from_slice(body).map_err(|e| format!("corrupt model file: {e}"))
     }
 }

@@ -96,12 +96,7 @@ pub fn fit_sequence(
     let _ = (method, params);
     let iterations = 3;
     for iteration in 1..=iterations {
-        let progress = Progress {
-            iteration,
-            iterations,
-            loss: LossTerms::default(),
-            best_validation_loss: None,
-        };
+        let progress = Progress { iteration, iterations, loss: LossTerms::default(), best_validation_loss: None };
         if on_progress(&progress).is_break() {
             return Err(FitError::Cancelled { iteration });
         }
@@ -113,35 +108,20 @@ pub fn fit_sequence(
 pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
     let frames = sequence.frames.len();
     if frames < 2 {
-        return Err(FitError::InvalidSequence(format!(
-            "needs at least 2 frames, got {frames}"
-        )));
+        return Err(FitError::InvalidSequence(format!("needs at least 2 frames, got {frames}")));
     }
     if let Some(k) = sequence.frames.iter().position(|f| f.is_empty()) {
-        return Err(FitError::InvalidSequence(format!(
-            "frame {k} has no points"
-        )));
+        return Err(FitError::InvalidSequence(format!("frame {k} has no points")));
     }
-    if let Some(k) = sequence
-        .frames
-        .iter()
-        .position(|f| f.iter().flatten().any(|c| !c.is_finite()))
-    {
-        return Err(FitError::InvalidSequence(format!(
-            "frame {k} has a non-finite coordinate"
-        )));
+    if let Some(k) = sequence.frames.iter().position(|f| f.iter().flatten().any(|c| !c.is_finite())) {
+        return Err(FitError::InvalidSequence(format!("frame {k} has a non-finite coordinate")));
     }
     if let Some(ts) = &sequence.timestamps_s {
         if ts.len() != frames {
-            return Err(FitError::InvalidSequence(format!(
-                "{} timestamps for {frames} frames",
-                ts.len()
-            )));
+            return Err(FitError::InvalidSequence(format!("{} timestamps for {frames} frames", ts.len())));
         }
-        if ts.windows(2).any(|w| !(w[1] > w[0])) || ts.iter().any(|t| !t.is_finite()) {
-            return Err(FitError::InvalidSequence(
-                "timestamps must be finite and strictly increasing".into(),
-            ));
+        if ts.windows(2).any(|w| w[1] <= w[0]) || ts.iter().any(|t| !t.is_finite()) {
+            return Err(FitError::InvalidSequence("timestamps must be finite and strictly increasing".into()));
         }
     }
     Ok(())

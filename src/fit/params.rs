@@ -170,10 +170,7 @@ impl FitParams {
     /// Fills in `method`'s defaults and checks every range; the error names the parameter.
     pub fn check(&self, method: Method) -> Result<ValidFitParams, FitParamsError> {
         fn bad(name: &'static str, problem: impl Into<String>) -> FitParamsError {
-            FitParamsError {
-                name,
-                problem: problem.into(),
-            }
+            FitParamsError { name, problem: problem.into() }
         }
         fn int_in(
             name: &'static str,
@@ -188,80 +185,35 @@ impl FitParams {
             }
             Ok(v)
         }
-        fn float_in(
-            name: &'static str,
-            v: Option<f32>,
-            default: f32,
-            lo: f32,
-            hi: f32,
-        ) -> Result<f32, FitParamsError> {
+        fn float_in(name: &'static str, v: Option<f32>, default: f32, lo: f32, hi: f32) -> Result<f32, FitParamsError> {
             let v = v.unwrap_or(default);
             if !v.is_finite() || v < lo || v > hi {
-                return Err(bad(
-                    name,
-                    format!("must be a finite number in [{lo}, {hi}], got {v}"),
-                ));
+                return Err(bad(name, format!("must be a finite number in [{lo}, {hi}], got {v}")));
             }
             Ok(v)
         }
         let default_iterations = if method.is_trajectory() { 1001 } else { 1000 };
         Ok(ValidFitParams {
-            iterations: int_in(
-                "iterations",
-                self.iterations,
-                default_iterations,
-                1,
-                MAX_ITERATIONS,
-            )?,
+            iterations: int_in("iterations", self.iterations, default_iterations, 1, MAX_ITERATIONS)?,
             seed: self.seed.unwrap_or(0),
             learning_rate: float_in("learning_rate", self.learning_rate, 0.003, 1e-7, 1.0)?,
-            lr_halve_every: int_in(
-                "lr_halve_every",
-                self.lr_halve_every,
-                500,
-                1,
-                MAX_ITERATIONS,
-            )?,
+            lr_halve_every: int_in("lr_halve_every", self.lr_halve_every, 500, 1, MAX_ITERATIONS)?,
             reference_frames: int_in("reference_frames", self.reference_frames, 4, 1, 64)?,
             validate_every: int_in("validate_every", self.validate_every, 25, 1, MAX_ITERATIONS)?,
             hidden_width: int_in("hidden_width", self.hidden_width, 128, 4, 1024)?,
             hidden_layers: int_in("hidden_layers", self.hidden_layers, 8, 1, 16)?,
-            chamfer_truncation_m2: float_in(
-                "chamfer_truncation_m2",
-                self.chamfer_truncation_m2,
-                2.0,
-                1e-6,
-                1e6,
-            )?,
+            chamfer_truncation_m2: float_in("chamfer_truncation_m2", self.chamfer_truncation_m2, 2.0, 1e-6, 1e6)?,
             cycle_weight: float_in("cycle_weight", self.cycle_weight, 1.0, 0.0, 1e3)?,
             rigidity_weight: float_in("rigidity_weight", self.rigidity_weight, 1.0, 0.0, 1e3)?,
             dbscan_eps_m: float_in("dbscan_eps_m", self.dbscan_eps_m, 0.8, 1e-3, 10.0)?,
             dbscan_min_points: int_in("dbscan_min_points", self.dbscan_min_points, 30, 1, 10_000)?,
-            max_cluster_points: int_in(
-                "max_cluster_points",
-                self.max_cluster_points,
-                3000,
-                3,
-                20_000,
-            )?,
+            max_cluster_points: int_in("max_cluster_points", self.max_cluster_points, 3000, 3, 20_000)?,
             power_iterations: int_in("power_iterations", self.power_iterations, 10, 1, 1000)?,
             d_thr_base_m: float_in("d_thr_base_m", self.d_thr_base_m, 0.10, 1e-4, 10.0)?,
             d_thr_slope_m: float_in("d_thr_slope_m", self.d_thr_slope_m, 0.39, 0.0, 10.0)?,
             pair_d_thr_m: float_in("pair_d_thr_m", self.pair_d_thr_m, 0.03, 1e-4, 10.0)?,
-            early_stop_patience: int_in(
-                "early_stop_patience",
-                self.early_stop_patience,
-                100,
-                1,
-                MAX_ITERATIONS,
-            )?,
-            early_stop_min_delta: float_in(
-                "early_stop_min_delta",
-                self.early_stop_min_delta,
-                1e-4,
-                0.0,
-                1e3,
-            )?,
+            early_stop_patience: int_in("early_stop_patience", self.early_stop_patience, 100, 1, MAX_ITERATIONS)?,
+            early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
@@ -278,18 +230,12 @@ mod tests {
         assert_eq!(p.iterations, 1001);
         assert_eq!(p.learning_rate, 0.003);
         assert_eq!(p.dbscan_min_points, 30);
-        assert_eq!(
-            FitParams::default().check(Method::Nsfp).unwrap().iterations,
-            1000
-        );
+        assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations, 1000);
     }
 
     #[test]
     fn an_out_of_range_parameter_is_named() {
-        let p = FitParams {
-            learning_rate: Some(-1.0),
-            ..Default::default()
-        };
+        let p = FitParams { learning_rate: Some(-1.0), ..Default::default() };
         assert_eq!(p.check(Method::Ntp).unwrap_err().name, "learning_rate");
         let e = serde_json::from_str::<FitParams>(r#"{"iterations": 5, "bogus": 1}"#).unwrap_err();
         assert!(e.to_string().contains("bogus"), "{e}");

@@ -34,10 +34,7 @@ impl KdTree {
             // Only fails when the index overflows u32 (> 4 billion points): a caller bug.
             Some(ImmutableKdTree::new_from_slice(points).expect("point count fits in u32"))
         };
-        Self {
-            tree,
-            len: points.len(),
-        }
+        Self { tree, len: points.len() }
     }
 
     /// Number of points in the tree.
@@ -53,14 +50,8 @@ impl KdTree {
     /// The exact nearest neighbour of `query`, or `None` for an empty tree.
     pub fn nearest(&self, query: &Point) -> Option<Nearest> {
         let tree = self.tree.as_ref()?;
-        let hit = tree
-            .query(query)
-            .nearest_one::<SquaredEuclidean<f32>>()
-            .execute();
-        Some(Nearest {
-            index: hit.item as usize,
-            dist2: hit.distance,
-        })
+        let hit = tree.query(query).nearest_one::<SquaredEuclidean<f32>>().execute();
+        Some(Nearest { index: hit.item as usize, dist2: hit.distance })
     }
 
     /// Nearest neighbours of every query, written into `out` (same length as `queries`), in
@@ -71,20 +62,10 @@ impl KdTree {
         let Some(tree) = self.tree.as_ref() else {
             return false;
         };
-        queries
-            .par_iter()
-            .zip(out.par_iter_mut())
-            .with_min_len(512)
-            .for_each(|(q, o)| {
-                let hit = tree
-                    .query(q)
-                    .nearest_one::<SquaredEuclidean<f32>>()
-                    .execute();
-                *o = Nearest {
-                    index: hit.item as usize,
-                    dist2: hit.distance,
-                };
-            });
+        queries.par_iter().zip(out.par_iter_mut()).with_min_len(512).for_each(|(q, o)| {
+            let hit = tree.query(q).nearest_one::<SquaredEuclidean<f32>>().execute();
+            *o = Nearest { index: hit.item as usize, dist2: hit.distance };
+        });
         true
     }
 
@@ -95,11 +76,7 @@ impl KdTree {
         let Some(tree) = self.tree.as_ref() else {
             return;
         };
-        let hits = tree
-            .query(query)
-            .within::<SquaredEuclidean<f32>>(radius_m * radius_m)
-            .unsorted()
-            .execute();
+        let hits = tree.query(query).within::<SquaredEuclidean<f32>>(radius_m * radius_m).unsorted().execute();
         out.extend(hits.into_iter().map(|h| h.item as usize));
     }
 }
@@ -109,19 +86,14 @@ pub fn nearest_linear(points: &[Point], query: &Point) -> Option<Nearest> {
     points
         .iter()
         .enumerate()
-        .map(|(index, p)| Nearest {
-            index,
-            dist2: dist2(p, query),
-        })
+        .map(|(index, p)| Nearest { index, dist2: dist2(p, query) })
         .min_by(|a, b| a.dist2.total_cmp(&b.dist2))
 }
 
 /// Brute-force twin of [`KdTree::within`]: every index whose point lies within `radius_m`.
 pub fn within_linear(points: &[Point], query: &Point, radius_m: f32) -> Vec<usize> {
     let r2 = radius_m * radius_m;
-    (0..points.len())
-        .filter(|&i| dist2(&points[i], query) <= r2)
-        .collect()
+    (0..points.len()).filter(|&i| dist2(&points[i], query) <= r2).collect()
 }
 
 /// Squared Euclidean distance (m^2).
@@ -142,13 +114,7 @@ mod tests {
     fn random_cloud(n: usize, seed: u64) -> Vec<Point> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..n)
-            .map(|_| {
-                [
-                    rng.random_range(-20.0..20.0),
-                    rng.random_range(-20.0..20.0),
-                    rng.random_range(-2.0..2.0),
-                ]
-            })
+            .map(|_| [rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0), rng.random_range(-2.0..2.0)])
             .collect()
     }
 
@@ -165,13 +131,7 @@ mod tests {
 
     fn check_nearest_matches_linear(points: &[Point], queries: &[Point]) {
         let tree = KdTree::new(points);
-        let mut batch = vec![
-            Nearest {
-                index: 0,
-                dist2: 0.0
-            };
-            queries.len()
-        ];
+        let mut batch = vec![Nearest { index: 0, dist2: 0.0 }; queries.len()];
         assert!(tree.nearest_batch(queries, &mut batch));
         for (q, b) in queries.iter().zip(&batch) {
             let fast = tree.nearest(q).unwrap();
