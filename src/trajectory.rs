@@ -6,7 +6,10 @@
 use serde::{Deserialize, Serialize};
 
 use crate::fit::Method;
+use crate::fit::encoding::encode_points;
+use crate::fit::prepare::FrameReport;
 use crate::geometry::Point;
+use crate::nn::{Mlp, Workspace};
 
 /// Maps the sequence's time axis to fractional frame indices, piecewise linearly.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -40,7 +43,10 @@ pub enum QueryError {
 impl TimeAxis {
     /// A time axis over `frames` frames, in seconds when `timestamps_s` is given.
     pub fn new(timestamps_s: Option<Vec<f64>>, frames: usize) -> Self {
-        Self { timestamps_s, frames }
+        Self {
+            timestamps_s,
+            frames,
+        }
     }
 
     /// Number of frames T.
@@ -72,30 +78,79 @@ impl TimeAxis {
             return Ok(time);
         };
         // The last k with ts[k] <= time, so that ts[k] <= time < ts[k + 1].
-        let k = ts.partition_point(|&t| t <= time).saturating_sub(1).min(self.frames - 2);
+        let k = ts
+            .partition_point(|&t| t <= time)
+            .saturating_sub(1)
+            .min(self.frames - 2);
         Ok(k as f64 + (time - ts[k]) / (ts[k + 1] - ts[k]))
     }
 }
 
 /// The fitted network(s) behind a model.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 enum Motion {
-    /// TEMPORARY until the fitting loops land (issue 2): no motion.
-    Zero,
+    /// One trajectory network (NTP, MBNT): input [x, y, z, time embedding], output the
+    /// velocities v_0..v_{T-2}.
+    Trajectory(Mlp<f32>),
+    /// Per pair k -> k+1 a forward flow f_k and a backward flow g_k (NSFP, MBNSF).
+    PairFlows {
+        /// f_k, k = 0..T-2.
+        forward: Vec<Mlp<f32>>,
+        /// g_k, k = 0..T-2.
+        backward: Vec<Mlp<f32>>,
+    },
+}
+
+/// What the fit did, kept with the model so that users can see it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FitReport {
+    /// Per frame: points received, removed as ground or out of range, fitted, clusters.
+    pub frames: Vec<FrameReport>,
+    /// Optimiser iterations run (summed over pairs for pair-wise methods).
+    pub iterations: usize,
+    /// Iteration of the selected checkpoint (trajectory methods).
+    pub best_iteration: Option<usize>,
+    /// Validation loss of the selected checkpoint (trajectory methods).
+    pub best_validation_loss: Option<f64>,
+    /// Iterations run per pair (pair-wise methods; early stopping may end a pair sooner).
+    pub iterations_per_pair: Vec<usize>,
+    /// Wall time of the fit (s).
+    pub fit_seconds: f64,
+    /// Wall time per phase of the trajectory loop (zero for pair-wise methods).
+    #[serde(default)]
+    pub phase_times: crate::fit::PhaseTimes,
+    /// The checked hyper-parameters the fit ran with.
+    #[serde(default)]
+    pub params: Option<crate::fit::ValidFitParams>,
 }
 
 /// A fitted motion model of one sequence.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 pub struct FittedModel {
     method: Method,
     time_axis: TimeAxis,
+    report: FitReport,
     motion: Motion,
 }
 
+/// Query points are evaluated in chunks of this many, bounding memory for large queries.
+const QUERY_CHUNK: usize = 16_384;
+
 impl FittedModel {
-    /// TEMPORARY (issue 2): a model in which nothing moves.
-    pub fn zero_motion(time_axis: TimeAxis) -> Self {
-        Self { method: Method::Mbnt, time_axis, motion: Motion::Zero }
+    /// A model from a fitted trajectory network.
+    pub(crate) fn trajectory(method: Method, time_axis: TimeAxis, report: FitReport, mlp: Mlp<f32>) -> Self {
+        Self { method, time_axis, report, motion: Motion::Trajectory(mlp) }
+    }
+
+    /// A model from fitted pair flows.
+    pub(crate) fn pair_flows(
+        method: Method,
+        time_axis: TimeAxis,
+        report: FitReport,
+        forward: Vec<Mlp<f32>>,
+        backward: Vec<Mlp<f32>>,
+    ) -> Self {
+        Self { method, time_axis, report, motion: Motion::PairFlows { forward, backward } }
     }
 
     /// The method that produced the model.
@@ -108,21 +163,36 @@ impl FittedModel {
         &self.time_axis
     }
 
+    /// What the fit did (pre-processing counts, iterations, checkpoint).
+    pub fn report(&self) -> &FitReport {
+        &self.report
+    }
+
     /// Positions of `points`, observed at time `t_obs`, at each of `times`.
     ///
     /// Returns a point-major array: entry `i * times.len() + j` is point i at `times[j]`, in
-    /// the sensor frame of time `times[j]`.
+    /// the sensor frame of time `times[j]`. Cost: one network evaluation per point for
+    /// trajectory models; one per point and crossed frame for pair-wise models.
     pub fn positions(&self, points: &[Point], t_obs: f64, times: &[f64]) -> Result<Vec<Point>, QueryError> {
         if let Some(index) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
             return Err(QueryError::NonFinitePoint { index });
         }
-        self.time_axis.to_frame_index(t_obs)?;
-        for &t in times {
-            self.time_axis.to_frame_index(t)?;
+        let u_obs = self.time_axis.to_frame_index(t_obs)?;
+        let u_times = times.iter().map(|&t| self.time_axis.to_frame_index(t)).collect::<Result<Vec<_>, _>>()?;
+        let mut out = vec![[0f32; 3]; points.len() * times.len()];
+        if times.is_empty() {
+            return Ok(out);
         }
-        match self.motion {
-            Motion::Zero => Ok(points.iter().flat_map(|p| std::iter::repeat_n(*p, times.len())).collect()),
+        let frames = self.time_axis.frames();
+        for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * times.len())) {
+            match &self.motion {
+                Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, &u_times, out_chunk),
+                Motion::PairFlows { forward, backward } => {
+                    euler_positions(forward, backward, chunk, u_obs, &u_times, out_chunk)
+                }
+            }
         }
+        Ok(out)
     }
 
     /// Scene flow of every frame's points to the next frame: entry k has one vector (m) per
@@ -139,17 +209,165 @@ impl FittedModel {
             .collect()
     }
 
-    /// Serialises the model (versioned binary format).
+    /// Serialises the model: magic and version, a JSON header, then each network's own
+    /// versioned binary encoding behind a length prefix.
     pub fn to_bytes(&self) -> Vec<u8> {
+        let (kind, networks): (&str, Vec<&Mlp<f32>>) = match &self.motion {
+            Motion::Trajectory(mlp) => ("trajectory", vec![mlp]),
+            Motion::PairFlows { forward, backward } => ("pair_flows", forward.iter().chain(backward).collect()),
+        };
+        let header = Header {
+            method: self.method,
+            time_axis: self.time_axis.clone(),
+            report: self.report.clone(),
+            kind: kind.to_string(),
+            networks: networks.len(),
+        };
+        let header = serde_json::to_vec(&header).expect("a header always serialises");
         let mut out = MODEL_MAGIC.to_vec();
-        out.extend(serde_json::to_vec(self).expect("a model always serialises"));
+        out.extend((header.len() as u64).to_le_bytes());
+        out.extend(header);
+        for net in networks {
+            let bytes = net.to_bytes();
+            out.extend((bytes.len() as u64).to_le_bytes());
+            out.extend(bytes);
+        }
         out
     }
 
     /// Reads a model written by [`FittedModel::to_bytes`].
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
-        let body = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
-        serde_json::from_slice(body).map_err(|e| format!("corrupt model file: {e}"))
+        let mut rest = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
+        let mut take = |what: &str| -> Result<&[u8], String> {
+            if rest.len() < 8 {
+                return Err(format!("model file truncated before {what}"));
+            }
+            let len = u64::from_le_bytes(rest[..8].try_into().expect("8 bytes")) as usize;
+            if rest.len() - 8 < len {
+                return Err(format!("model file truncated inside {what}"));
+            }
+            let (body, tail) = rest[8..].split_at(len);
+            rest = tail;
+            Ok(body)
+        };
+        let header: Header =
+            serde_json::from_slice(take("the header")?).map_err(|e| format!("corrupt model header: {e}"))?;
+        let mut networks = Vec::with_capacity(header.networks.min(1024));
+        for i in 0..header.networks {
+            let body = take("a network")?;
+            networks.push(Mlp::<f32>::from_bytes(body).map_err(|e| format!("corrupt network {i}: {e}"))?);
+        }
+        let frames = header.time_axis.frames();
+        let motion = match header.kind.as_str() {
+            "trajectory" if networks.len() == 1 => Motion::Trajectory(networks.pop().expect("one network")),
+            "pair_flows" if networks.len() == 2 * frames.saturating_sub(1) => {
+                let backward = networks.split_off(frames - 1);
+                Motion::PairFlows { forward: networks, backward }
+            }
+            kind => return Err(format!("model kind {kind:?} with {} networks does not fit {frames} frames", header.networks)),
+        };
+        Ok(Self { method: header.method, time_axis: header.time_axis, report: header.report, motion })
+    }
+}
+
+/// The serialised description of a model, ahead of its networks.
+#[derive(Serialize, Deserialize)]
+struct Header {
+    method: Method,
+    time_axis: TimeAxis,
+    report: FitReport,
+    kind: String,
+    networks: usize,
+}
+
+/// Trajectory position at fractional frame index `u` from one point's velocity row: the
+/// running sum of the velocities, linear within a step.
+fn trajectory_at(row: &[f32], u: f64) -> [f64; 3] {
+    let steps = row.len() / 3;
+    let whole = (u.floor() as usize).min(steps);
+    let frac = u - whole as f64;
+    let mut d = [0f64; 3];
+    for k in 0..whole {
+        for c in 0..3 {
+            d[c] += f64::from(row[3 * k + c]);
+        }
+    }
+    if whole < steps && frac > 0.0 {
+        for c in 0..3 {
+            d[c] += frac * f64::from(row[3 * whole + c]);
+        }
+    }
+    d
+}
+
+fn trajectory_positions(mlp: &Mlp<f32>, frames: usize, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+    let mut input = Vec::new();
+    let mut workspace = Workspace::default();
+    encode_points(points, u_obs, frames, &mut input);
+    let velocities = mlp.forward(&input, points.len(), &mut workspace);
+    let width = 3 * (frames - 1);
+    for (i, p) in points.iter().enumerate() {
+        let row = &velocities[i * width..][..width];
+        let anchor = trajectory_at(row, u_obs);
+        for (j, &u) in u_times.iter().enumerate() {
+            let at = trajectory_at(row, u);
+            out[i * u_times.len() + j] = std::array::from_fn(|c| (f64::from(p[c]) + at[c] - anchor[c]) as f32);
+        }
+    }
+}
+
+/// Forward/backward Euler through pair flows. Within a step, motion is linear: a point at
+/// fractional index k + a moves by the fraction of f_k (forward) or g_k (backward) it has left.
+fn euler_positions(
+    forward: &[Mlp<f32>],
+    backward: &[Mlp<f32>],
+    points: &[Point],
+    u_obs: f64,
+    u_times: &[f64],
+    out: &mut [Point],
+) {
+    let n_times = u_times.len();
+    let mut workspace = Workspace::default();
+    // f or g of `current` scaled by `fraction`, added with `sign`.
+    let mut step = |net: &Mlp<f32>, current: &mut Vec<Point>, fraction: f64, sign: f32| {
+        let flow = net.forward(current.as_flattened(), current.len(), &mut workspace);
+        for (p, v) in current.iter_mut().zip(flow.chunks_exact(3)) {
+            for c in 0..3 {
+                p[c] += sign * fraction as f32 * v[c];
+            }
+        }
+    };
+    let steps = forward.len();
+    // One sweep forward through the later times (ascending) and one backward through the
+    // earlier ones (descending), so each crossed step is evaluated once.
+    let mut later: Vec<usize> = (0..n_times).filter(|&j| u_times[j] >= u_obs).collect();
+    let mut earlier: Vec<usize> = (0..n_times).filter(|&j| u_times[j] < u_obs).collect();
+    later.sort_by(|&a, &b| u_times[a].total_cmp(&u_times[b]));
+    earlier.sort_by(|&a, &b| u_times[b].total_cmp(&u_times[a]));
+    for (order, forward_in_time) in [(later, true), (earlier, false)] {
+        let mut current = points.to_vec();
+        let mut at = u_obs;
+        for j in order {
+            let u = u_times[j];
+            if forward_in_time {
+                while u - at > 1e-9 {
+                    let k = (at.floor() as usize).min(steps - 1);
+                    let next = ((k + 1) as f64).min(u);
+                    step(&forward[k], &mut current, next - at, 1.0);
+                    at = next;
+                }
+            } else {
+                while at - u > 1e-9 {
+                    let k = ((at.ceil() as usize).max(1) - 1).min(steps - 1);
+                    let prev = (k as f64).max(u);
+                    step(&backward[k], &mut current, at - prev, -1.0);
+                    at = prev;
+                }
+            }
+            for (i, p) in current.iter().enumerate() {
+                out[i * n_times + j] = *p;
+            }
+        }
     }
 }
 

@@ -4,14 +4,18 @@
 //! The service and the CLI drive this through [`fit_sequence`], a plain blocking call that
 //! reports progress through a callback which may also cancel between iterations.
 
+pub mod encoding;
+pub mod nsfp;
+pub mod ntp;
 mod params;
+pub mod prepare;
 
-pub use params::{FitParams, FitParamsError, Method, ValidFitParams};
+pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};
 
 use std::ops::ControlFlow;
 
 use crate::geometry::Point;
-use crate::trajectory::{FittedModel, TimeAxis};
+use crate::trajectory::{FitReport, FittedModel, TimeAxis};
 
 /// A sequence to fit: T frames of points, each in its own sensor frame, and its time axis.
 #[derive(Debug, Clone)]
@@ -42,6 +46,27 @@ pub struct LossTerms {
     pub rigidity: f64,
     /// Weighted total that the optimiser minimises.
     pub total: f64,
+}
+
+/// Wall time spent per phase of a fit (s), summed over iterations: what `mbnt bench` prints.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PhaseTimes {
+    /// MLP forward passes (input encoding included).
+    pub mlp_forward_s: f64,
+    /// MLP backward passes.
+    pub mlp_backward_s: f64,
+    /// Truncated Chamfer: nearest neighbours both ways, value and gradient.
+    pub nearest_s: f64,
+    /// Cycle consistency outside the MLP: moving points, the loss, chaining gradients.
+    pub cycle_s: f64,
+    /// Multi-body loss: subsampling, pairwise distances, power iteration, gradient.
+    pub multibody_s: f64,
+    /// Adam steps.
+    pub optimiser_s: f64,
+    /// Floating-point operations of the MLP passes (GFLOP), for achieved GFLOP/s.
+    pub mlp_gflop: f64,
+    /// The whole loop; the rest (total minus the phases) is bookkeeping and checkpoints.
+    pub total_s: f64,
 }
 
 /// What the fitting loop reports after each iteration.
@@ -91,38 +116,64 @@ pub fn fit_sequence(
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
-    // TEMPORARY until the fitting loops land (issue 2): a zero-motion model, so that the
-    // service can be built against this signature. Replaced before the issue is closed.
-    let _ = (method, params);
-    let iterations = 3;
-    for iteration in 1..=iterations {
-        let progress = Progress { iteration, iterations, loss: LossTerms::default(), best_validation_loss: None };
-        if on_progress(&progress).is_break() {
-            return Err(FitError::Cancelled { iteration });
-        }
-    }
-    Ok(FittedModel::zero_motion(sequence.time_axis()))
+    let started = std::time::Instant::now();
+    let (frames, frame_reports) = prepare::prepare_frames(sequence, params, method.uses_rigidity(), method.is_trajectory())?;
+    let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
+    let model = if method.is_trajectory() {
+        let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;
+        report.iterations = fit.iterations;
+        report.best_iteration = Some(fit.best_iteration);
+        report.best_validation_loss = Some(fit.best_validation_loss);
+        report.phase_times = fit.times;
+        report.fit_seconds = started.elapsed().as_secs_f64();
+        FittedModel::trajectory(method, sequence.time_axis(), report, fit.mlp)
+    } else {
+        let fit = nsfp::fit_pairs(&frames, params, method.uses_rigidity(), on_progress)?;
+        report.iterations = fit.iterations_per_pair.iter().sum();
+        report.iterations_per_pair = fit.iterations_per_pair;
+        report.fit_seconds = started.elapsed().as_secs_f64();
+        FittedModel::pair_flows(method, sequence.time_axis(), report, fit.forward, fit.backward)
+    };
+    Ok(model)
 }
 
 /// Checks what every method needs: at least two frames, none empty, all points finite.
 pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
     let frames = sequence.frames.len();
     if frames < 2 {
-        return Err(FitError::InvalidSequence(format!("needs at least 2 frames, got {frames}")));
+        return Err(FitError::InvalidSequence(format!(
+            "needs at least 2 frames, got {frames}"
+        )));
     }
     if let Some(k) = sequence.frames.iter().position(|f| f.is_empty()) {
-        return Err(FitError::InvalidSequence(format!("frame {k} has no points")));
+        return Err(FitError::InvalidSequence(format!(
+            "frame {k} has no points"
+        )));
     }
-    if let Some(k) = sequence.frames.iter().position(|f| f.iter().flatten().any(|c| !c.is_finite())) {
-        return Err(FitError::InvalidSequence(format!("frame {k} has a non-finite coordinate")));
+    if let Some(k) = sequence
+        .frames
+        .iter()
+        .position(|f| f.iter().flatten().any(|c| !c.is_finite()))
+    {
+        return Err(FitError::InvalidSequence(format!(
+            "frame {k} has a non-finite coordinate"
+        )));
     }
     if let Some(ts) = &sequence.timestamps_s {
         if ts.len() != frames {
-            return Err(FitError::InvalidSequence(format!("{} timestamps for {frames} frames", ts.len())));
+            return Err(FitError::InvalidSequence(format!(
+                "{} timestamps for {frames} frames",
+                ts.len()
+            )));
         }
         if ts.windows(2).any(|w| w[1] <= w[0]) || ts.iter().any(|t| !t.is_finite()) {
-            return Err(FitError::InvalidSequence("timestamps must be finite and strictly increasing".into()));
+            return Err(FitError::InvalidSequence(
+                "timestamps must be finite and strictly increasing".into(),
+            ));
         }
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests;

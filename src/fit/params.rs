@@ -53,11 +53,55 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// How faithfully a fit follows method.md.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// Exactly method.md: every point of a reference frame every iteration, 3000-point cluster
+    /// cap, all iterations run.
+    Faithful,
+    /// Ours (the service default): a random subset of each reference frame per iteration, a
+    /// smaller cluster cap and early stopping on the validation loss; validated against
+    /// `Faithful` in docs/benchmarks.md.
+    #[default]
+    Fast,
+}
+
+impl std::str::FromStr for Mode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "faithful" => Ok(Mode::Faithful),
+            "fast" => Ok(Mode::Fast),
+            _ => Err(format!("unknown mode {s:?} (expected fast or faithful)")),
+        }
+    }
+}
+
+impl Mode {
+    /// The lower-case name used in the API and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Faithful => "faithful",
+            Mode::Fast => "fast",
+        }
+    }
+}
+
 /// User-facing hyper-parameters. Every field is optional; `None` takes the method's default
 /// (method.md). Unknown fields are rejected when deserialising.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FitParams {
+    /// `faithful` (method.md exactly) or `fast` (default): sets the defaults of
+    /// `sample_points`, `max_cluster_points` and `validation_patience`; explicit values win.
+    pub mode: Option<Mode>,
+    /// Trajectory methods: points of a reference frame used per iteration, drawn at random
+    /// (0 = all points; fast default 8192, faithful 0).
+    pub sample_points: Option<usize>,
+    /// Trajectory methods: stop once this many validations in a row did not improve the best
+    /// validation loss (0 = never; fast default 8, faithful 0).
+    pub validation_patience: Option<usize>,
     /// Optimiser iterations: 1001 for NTP/MBNT; at most 1000 per pair for NSFP/MBNSF.
     pub iterations: Option<usize>,
     /// Seed of every random choice (initialisation, reference frames, subsampling).
@@ -117,6 +161,12 @@ pub struct FitParamsError {
 /// Hyper-parameters checked for one method, with every default filled in.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ValidFitParams {
+    /// See [`FitParams::mode`].
+    pub mode: Mode,
+    /// See [`FitParams::sample_points`] (0 = all).
+    pub sample_points: usize,
+    /// See [`FitParams::validation_patience`] (0 = never).
+    pub validation_patience: usize,
     /// See [`FitParams::iterations`].
     pub iterations: usize,
     /// See [`FitParams::seed`].
@@ -193,7 +243,18 @@ impl FitParams {
             Ok(v)
         }
         let default_iterations = if method.is_trajectory() { 1001 } else { 1000 };
+        let mode = self.mode.unwrap_or_default();
+        let fast = mode == Mode::Fast;
         Ok(ValidFitParams {
+            mode,
+            sample_points: int_in("sample_points", self.sample_points, if fast { 8192 } else { 0 }, 0, 10_000_000)?,
+            validation_patience: int_in(
+                "validation_patience",
+                self.validation_patience,
+                if fast { 8 } else { 0 },
+                0,
+                MAX_ITERATIONS,
+            )?,
             iterations: int_in("iterations", self.iterations, default_iterations, 1, MAX_ITERATIONS)?,
             seed: self.seed.unwrap_or(0),
             learning_rate: float_in("learning_rate", self.learning_rate, 0.003, 1e-7, 1.0)?,
@@ -207,7 +268,7 @@ impl FitParams {
             rigidity_weight: float_in("rigidity_weight", self.rigidity_weight, 1.0, 0.0, 1e3)?,
             dbscan_eps_m: float_in("dbscan_eps_m", self.dbscan_eps_m, 0.8, 1e-3, 10.0)?,
             dbscan_min_points: int_in("dbscan_min_points", self.dbscan_min_points, 30, 1, 10_000)?,
-            max_cluster_points: int_in("max_cluster_points", self.max_cluster_points, 3000, 3, 20_000)?,
+            max_cluster_points: int_in("max_cluster_points", self.max_cluster_points, if fast { 1024 } else { 3000 }, 3, 20_000)?,
             power_iterations: int_in("power_iterations", self.power_iterations, 10, 1, 1000)?,
             d_thr_base_m: float_in("d_thr_base_m", self.d_thr_base_m, 0.10, 1e-4, 10.0)?,
             d_thr_slope_m: float_in("d_thr_slope_m", self.d_thr_slope_m, 0.39, 0.0, 10.0)?,
@@ -226,11 +287,25 @@ mod tests {
 
     #[test]
     fn defaults_follow_the_method_document() {
-        let p = FitParams::default().check(Method::Mbnt).unwrap();
+        let p = FitParams { mode: Some(Mode::Faithful), ..Default::default() }.check(Method::Mbnt).unwrap();
         assert_eq!(p.iterations, 1001);
+        assert_eq!(p.sample_points, 0);
+        assert_eq!(p.max_cluster_points, 3000);
+        assert_eq!(p.validation_patience, 0);
         assert_eq!(p.learning_rate, 0.003);
         assert_eq!(p.dbscan_min_points, 30);
         assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations, 1000);
+    }
+
+    #[test]
+    fn fast_mode_is_the_default_and_explicit_values_win() {
+        let p = FitParams::default().check(Method::Mbnt).unwrap();
+        assert_eq!(p.mode, Mode::Fast);
+        assert!(p.sample_points > 0 && p.validation_patience > 0);
+        let p = FitParams { sample_points: Some(0), ..Default::default() }.check(Method::Mbnt).unwrap();
+        assert_eq!(p.sample_points, 0);
+        let e = serde_json::from_str::<FitParams>(r#"{"mode": "turbo"}"#).unwrap_err();
+        assert!(e.to_string().contains("turbo"), "{e}");
     }
 
     #[test]

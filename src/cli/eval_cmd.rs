@@ -1,0 +1,300 @@
+//! `mbnt eval`: run methods on simulated sequences with exact ground truth and report
+//! scene-flow and long-term trajectory metrics beside two baselines (zero motion, and the
+//! best single rigid motion of the whole frame).
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::Serialize;
+
+use crate::fit::{FitParams, Method, Sequence, fit_sequence};
+use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
+use crate::geometry::rigid::{Rigid, fit_rigid_icp};
+use crate::metrics::{
+    SceneFlowMetrics, TrajectoryMetrics, average_over_pairs, scene_flow_metrics, trajectory_metrics,
+};
+use crate::io::npy::{NpyArray, read_npy};
+use crate::io::read_points_file;
+use crate::sim::{SimParams, SimSequence, simulate};
+
+/// Arguments of `mbnt eval`.
+#[derive(Debug, clap::Args)]
+pub struct EvalArgs {
+    /// Simulator seeds, one sequence each (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    pub seeds: Vec<u64>,
+    /// Directories written by `mbnt simulate` to evaluate instead of simulating (repeatable).
+    #[arg(long)]
+    pub dir: Vec<PathBuf>,
+    /// Frames per simulated sequence.
+    #[arg(long, default_value_t = 25)]
+    pub frames: usize,
+    /// Methods to run (comma-separated; the baselines always run).
+    #[arg(long, value_delimiter = ',', default_value = "mbnt,ntp,mbnsf,nsfp")]
+    pub methods: Vec<Method>,
+    /// Hyper-parameters as JSON, applied to every method (e.g. '{"iterations": 300}').
+    #[arg(long)]
+    pub params: Option<String>,
+    /// Write the machine-readable results here (JSON).
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Metrics of one method on one sequence.
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodResult {
+    /// Method or baseline name.
+    pub method: String,
+    /// The sequence (simulator seed or directory).
+    pub sequence: String,
+    /// Scene flow, averaged over pairs (non-ground points).
+    pub scene_flow: SceneFlowMetrics,
+    /// Scene flow per pair k -> k+1.
+    pub scene_flow_per_pair: Vec<SceneFlowMetrics>,
+    /// Frame 0 to frame T-1, all non-ground points.
+    pub long_term: TrajectoryMetrics,
+    /// The same, static points only.
+    pub long_term_static: TrajectoryMetrics,
+    /// The same, dynamic points only.
+    pub long_term_dynamic: TrajectoryMetrics,
+    /// Wall time of the fit (s).
+    pub fit_seconds: f64,
+}
+
+/// A sequence with the ground truth the metrics need, from the simulator or from a directory
+/// written by `mbnt simulate`.
+pub struct Labelled {
+    /// Name shown in the results (seed or directory).
+    pub name: String,
+    /// Frames (sensor frame of each sweep).
+    pub frames: Vec<Vec<Point>>,
+    /// Timestamps (s).
+    pub timestamps_s: Vec<f64>,
+    /// True scene flow of frame k's points to frame k+1, k = 0..T-2.
+    pub flows: Vec<Vec<Point>>,
+    /// True positions of frame 0's points at frame T-1.
+    pub end_positions: Vec<Point>,
+    /// Ground flags per frame and point (ground is left out of every metric).
+    pub is_ground: Vec<Vec<bool>>,
+    /// Dynamic flags of frame 0's points.
+    pub dynamic_0: Vec<bool>,
+}
+
+impl Labelled {
+    /// Ground truth of a simulated sequence.
+    pub fn from_sim(name: String, sim: &SimSequence) -> anyhow::Result<Self> {
+        let t = sim.frames.len();
+        Ok(Labelled {
+            name,
+            frames: sim.frames.clone(),
+            timestamps_s: sim.timestamps_s.clone(),
+            flows: (0..t - 1).map(|k| sim.scene_flow(k)).collect::<Result<_, _>>()?,
+            end_positions: sim.positions_at(0, t - 1)?,
+            is_ground: sim.truth.iter().map(|f| f.iter().map(|p| p.is_ground).collect()).collect(),
+            dynamic_0: sim.is_dynamic(0)?,
+        })
+    }
+
+    /// Reads a directory written by `mbnt simulate` (frames/, timestamps.txt, ground_truth.npz).
+    pub fn from_dir(dir: &Path) -> anyhow::Result<Self> {
+        let frame_paths = super::fit_cmd::frame_paths(&[dir.join("frames")])?;
+        let frames = frame_paths
+            .iter()
+            .map(|p| read_points_file(p).with_context(|| format!("reading {}", p.display())))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let timestamps_s = super::fit_cmd::read_timestamps(&dir.join("timestamps.txt"))?;
+        let path = dir.join("ground_truth.npz");
+        let file = std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let mut zip = zip::ZipArchive::new(std::io::BufReader::new(file))?;
+        let mut array = |name: &str| -> anyhow::Result<NpyArray> {
+            let mut entry = zip.by_name(&format!("{name}.npy")).with_context(|| format!("{name} missing in {}", path.display()))?;
+            let mut bytes = Vec::new();
+            std::io::Read::read_to_end(&mut entry, &mut bytes)?;
+            Ok(read_npy(&bytes).with_context(|| format!("{name} in {}", path.display()))?)
+        };
+        let t = frames.len();
+        let points = |a: NpyArray| -> anyhow::Result<Vec<Point>> {
+            let v = a.to_f32().context("expected a float array")?;
+            Ok(v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+        };
+        let mut flows = Vec::new();
+        let mut is_ground = Vec::new();
+        for k in 0..t {
+            if k + 1 < t {
+                flows.push(points(array(&format!("flow_{k:03}"))?)?);
+            }
+            is_ground.push(array(&format!("is_ground_{k:03}"))?.to_bool().context("is_ground must be bool")?);
+        }
+        let traj = array("traj_000")?.to_f32().context("traj_000 must be float")?;
+        let end_positions = traj.chunks_exact(3 * t).map(|row| {
+            let c = &row[3 * (t - 1)..];
+            [c[0], c[1], c[2]]
+        }).collect();
+        let dynamic_0 = array("is_dynamic_000")?.to_bool().context("is_dynamic must be bool")?;
+        Ok(Labelled { name: dir.display().to_string(), frames, timestamps_s, flows, end_positions, is_ground, dynamic_0 })
+    }
+}
+
+/// Predicted scene flows (per pair) and end positions of frame 0's points at frame T-1.
+struct Prediction {
+    flows: Vec<Vec<Point>>,
+    end_positions: Vec<Point>,
+    fit_seconds: f64,
+}
+
+fn score(name: &str, seq: &Labelled, pred: &Prediction) -> MethodResult {
+    let t = seq.frames.len();
+    let per_pair: Vec<SceneFlowMetrics> = (0..t - 1)
+        .map(|k| {
+            let non_ground: Vec<bool> = seq.is_ground[k].iter().map(|g| !g).collect();
+            scene_flow_metrics(&pred.flows[k], &seq.flows[k], Some(&non_ground))
+        })
+        .collect();
+    let ground = &seq.is_ground[0];
+    let select = |want_dynamic: Option<bool>| -> Vec<bool> {
+        (0..seq.end_positions.len())
+            .map(|i| !ground[i] && want_dynamic.is_none_or(|d| seq.dynamic_0[i] == d))
+            .collect()
+    };
+    let truth_end = &seq.end_positions;
+    MethodResult {
+        method: name.to_string(),
+        sequence: seq.name.clone(),
+        scene_flow: average_over_pairs(&per_pair),
+        scene_flow_per_pair: per_pair,
+        long_term: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(None))),
+        long_term_static: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(Some(false)))),
+        long_term_dynamic: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(Some(true)))),
+        fit_seconds: pred.fit_seconds,
+    }
+}
+
+fn zero_motion(sim: &Labelled) -> Prediction {
+    Prediction {
+        flows: sim.frames[..sim.frames.len() - 1].iter().map(|f| vec![[0.0; 3]; f.len()]).collect(),
+        end_positions: sim.frames[0].clone(),
+        fit_seconds: 0.0,
+    }
+}
+
+/// The best single rigid motion of each whole frame (ICP on non-ground points), chained over
+/// the sequence: what an ego-motion-only estimate achieves.
+fn rigid_frame_motion(sim: &Labelled) -> Prediction {
+    let started = std::time::Instant::now();
+    let non_ground = |k: usize| -> Vec<Point> {
+        sim.frames[k].iter().zip(&sim.is_ground[k]).filter(|(_, g)| !**g).map(|(p, _)| *p).collect()
+    };
+    let t = sim.frames.len();
+    let mut transforms = Vec::with_capacity(t - 1);
+    for k in 0..t - 1 {
+        let (src, dst) = (non_ground(k), non_ground(k + 1));
+        let tree = KdTree::new(&dst);
+        transforms.push(fit_rigid_icp(&src, &tree, &dst, Rigid::identity(), 30, 1.0));
+    }
+    let flows = (0..t - 1)
+        .map(|k| {
+            sim.frames[k]
+                .iter()
+                .map(|p| {
+                    let q = transforms[k].apply(p);
+                    [q[0] - p[0], q[1] - p[1], q[2] - p[2]]
+                })
+                .collect()
+        })
+        .collect();
+    let end_positions = sim.frames[0]
+        .iter()
+        .map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q)))
+        .collect();
+    Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64() }
+}
+
+fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<Prediction> {
+    let params = params.check(method)?;
+    let sequence = Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: None };
+    let mut last_print = std::time::Instant::now();
+    let model = fit_sequence(&sequence, method, &params, &mut |p| {
+        if last_print.elapsed().as_secs_f64() > 10.0 {
+            last_print = std::time::Instant::now();
+            eprintln!("  {} iteration {}/{} loss {:.5}", method.name(), p.iteration, p.iterations, p.loss.total);
+        }
+        ControlFlow::Continue(())
+    })?;
+    let flows = model.scene_flow(&sequence.frames);
+    let ts = &sim.timestamps_s;
+    let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
+    Ok(Prediction { flows, end_positions, fit_seconds: model.report().fit_seconds })
+}
+
+/// Runs `mbnt eval` and prints a table (and JSON when asked).
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    let params: FitParams = match &args.params {
+        Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
+        None => FitParams::default(),
+    };
+    let mut sequences = Vec::new();
+    for dir in &args.dir {
+        sequences.push(Labelled::from_dir(dir)?);
+    }
+    if args.dir.is_empty() {
+        for &seed in &args.seeds {
+            let sim = simulate(&SimParams { seed, frames: args.frames, ..SimParams::default() })?;
+            sequences.push(Labelled::from_sim(format!("seed {seed}"), &sim)?);
+        }
+    }
+    let mut results = Vec::new();
+    for seq in &sequences {
+        eprintln!("{}: {} frames, {} points in frame 0", seq.name, seq.frames.len(), seq.frames[0].len());
+        results.push(score("zero", seq, &zero_motion(seq)));
+        results.push(score("rigid-frame", seq, &rigid_frame_motion(seq)));
+        for &method in &args.methods {
+            eprintln!("{}: fitting {}", seq.name, method.name());
+            let pred = run_method(seq, method, &params)?;
+            let result = score(method.name(), seq, &pred);
+            eprintln!(
+                "  {}: long-term EPE {:.3} m, Acc.5 {:.1} %, scene-flow EPE {:.3} m, fit {:.0} s",
+                method.name(),
+                result.long_term.epe_m,
+                100.0 * result.long_term.acc_0_5,
+                result.scene_flow.epe_m,
+                result.fit_seconds
+            );
+            results.push(result);
+        }
+    }
+    print_table(&results);
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_vec_pretty(&results)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn print_table(results: &[MethodResult]) {
+    println!(
+        "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} | {:>8}",
+        "method", "sequence", "EPE", "Acc.05", "Acc.10", "Outl.", "Angle", "LT-EPE", "Acc.5", "Acc1.0", "St.5", "Dyn.5",
+        "fit s"
+    );
+    for r in results {
+        println!(
+            "{:<12} {:>10} | {:>7.4} {:>7.2} {:>7.2} {:>7.2} {:>6.3} | {:>7.3} {:>6.2} {:>6.2} | {:>6.2} {:>6.2} | {:>8.1}",
+            r.method,
+            r.sequence,
+            r.scene_flow.epe_m,
+            100.0 * r.scene_flow.acc_strict,
+            100.0 * r.scene_flow.acc_relaxed,
+            100.0 * r.scene_flow.outliers,
+            r.scene_flow.angle_rad,
+            r.long_term.epe_m,
+            100.0 * r.long_term.acc_0_5,
+            100.0 * r.long_term.acc_1_0,
+            100.0 * r.long_term_static.acc_0_5,
+            100.0 * r.long_term_dynamic.acc_0_5,
+            r.fit_seconds
+        );
+    }
+}

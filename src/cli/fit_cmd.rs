@@ -1,0 +1,165 @@
+//! `mbnt fit`: fit a method to frame files offline and write trajectories and labels.
+
+use std::io::{IsTerminal, Write};
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+
+use crate::fit::{FitParams, Method, Mode, Sequence, fit_sequence};
+use crate::geometry::Point;
+use crate::io::npz::NpzWriter;
+use crate::io::read_points_file;
+
+/// Arguments of `mbnt fit`.
+#[derive(Debug, clap::Args)]
+pub struct FitArgs {
+    /// Frame files in time order, or one directory whose point-cloud files sort in time order.
+    #[arg(required = true)]
+    pub frames: Vec<PathBuf>,
+    /// A text file with one timestamp (s) per frame; frame indices are the time axis otherwise.
+    #[arg(long)]
+    pub timestamps: Option<PathBuf>,
+    /// The method.
+    #[arg(long, default_value = "mbnt")]
+    pub method: Method,
+    /// Hyper-parameters as JSON (the job `params` object of the API), e.g. '{"iterations": 200}'.
+    #[arg(long)]
+    pub params: Option<String>,
+    /// Shorthand for the `iterations` parameter.
+    #[arg(long)]
+    pub iterations: Option<usize>,
+    /// Shorthand for the `seed` parameter.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Shorthand for the `mode` parameter: `fast` (default) or `faithful` (method.md exactly).
+    #[arg(long)]
+    pub mode: Option<Mode>,
+    /// Output `.npz`: `traj_KKK` (N_k x T x 3 positions of frame k's points at every frame
+    /// time) for the frames chosen by --trajectories, `flow_KKK` scene-flow labels, `timestamps`.
+    #[arg(long, default_value = "mbnt-fit.npz")]
+    pub out: PathBuf,
+    /// Frames whose dense trajectories are written: `first` (frame 0), `all`, or `none`.
+    #[arg(long, default_value = "first")]
+    pub trajectories: String,
+    /// Also write the fitted model (loadable by the service's format) to this file.
+    #[arg(long)]
+    pub model_out: Option<PathBuf>,
+}
+
+/// Point-cloud file endings taken from a directory.
+const FRAME_EXTENSIONS: [&str; 5] = ["bin", "ply", "pcd", "npy", "kitti"];
+
+pub(crate) fn frame_paths(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    if let [dir] = inputs
+        && dir.is_dir()
+    {
+        let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+            .with_context(|| format!("reading directory {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.extension().and_then(|e| e.to_str()).is_some_and(|e| FRAME_EXTENSIONS.contains(&e))
+            })
+            .collect();
+        paths.sort();
+        if paths.is_empty() {
+            bail!("no point-cloud files ({}) in {}", FRAME_EXTENSIONS.join(", "), dir.display());
+        }
+        return Ok(paths);
+    }
+    Ok(inputs.to_vec())
+}
+
+/// Reads whitespace-separated timestamps (s), one per frame.
+pub fn read_timestamps(path: &Path) -> anyhow::Result<Vec<f64>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    text.split_whitespace()
+        .map(|w| w.parse::<f64>().with_context(|| format!("bad timestamp {w:?} in {}", path.display())))
+        .collect()
+}
+
+/// Runs `mbnt fit`.
+pub fn run(args: FitArgs) -> anyhow::Result<()> {
+    let paths = frame_paths(&args.frames)?;
+    let mut frames: Vec<Vec<Point>> = Vec::with_capacity(paths.len());
+    for path in &paths {
+        let points = read_points_file(path).with_context(|| format!("reading frame {}", path.display()))?;
+        frames.push(points);
+    }
+    let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
+    let mut params: FitParams = match &args.params {
+        Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
+        None => FitParams::default(),
+    };
+    params.iterations = args.iterations.or(params.iterations);
+    params.seed = args.seed.or(params.seed);
+    params.mode = args.mode.or(params.mode);
+    let params = params.check(args.method)?;
+    let sequence = Sequence { frames, timestamps_s, poses: None };
+    eprintln!(
+        "fitting {} to {} frames ({} points) with {} iterations",
+        args.method.name(),
+        sequence.frames.len(),
+        sequence.frames.iter().map(Vec::len).sum::<usize>(),
+        params.iterations
+    );
+    let interactive = std::io::stderr().is_terminal();
+    let started = std::time::Instant::now();
+    let mut last_print = std::time::Instant::now() - std::time::Duration::from_secs(10);
+    let mut on_progress = |p: &crate::fit::Progress| {
+        let now = std::time::Instant::now();
+        if p.iteration == p.iterations || now.duration_since(last_print).as_secs_f64() >= 1.0 {
+            last_print = now;
+            let elapsed = started.elapsed().as_secs_f64();
+            let eta = elapsed / p.iteration as f64 * (p.iterations - p.iteration) as f64;
+            let line = format!(
+                "iteration {}/{}  loss {:.5} (chamfer {:.5}, cycle {:.5}, rigidity {:.5})  {:.0}s, eta {:.0}s",
+                p.iteration, p.iterations, p.loss.total, p.loss.chamfer, p.loss.cycle, p.loss.rigidity, elapsed, eta
+            );
+            if interactive {
+                eprint!("\r{line}   ");
+            } else {
+                eprintln!("{line}");
+            }
+        }
+        ControlFlow::Continue(())
+    };
+    let model = fit_sequence(&sequence, args.method, &params, &mut on_progress)?;
+    if interactive {
+        eprintln!();
+    }
+    let report = model.report();
+    for (k, f) in report.frames.iter().enumerate() {
+        eprintln!(
+            "frame {k}: {} points, {} ground, {} out of range, {} fitted, {} clusters",
+            f.input_points, f.ground_points, f.out_of_range_points, f.fitted_points, f.clusters
+        );
+    }
+    eprintln!("fit took {:.1} s", report.fit_seconds);
+
+    let axis = model.time_axis().clone();
+    let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+    let file = std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut npz = NpzWriter::new(std::io::BufWriter::new(file));
+    let traj_frames: Vec<usize> = match args.trajectories.as_str() {
+        "first" => vec![0],
+        "all" => (0..axis.frames()).collect(),
+        "none" => Vec::new(),
+        other => bail!("--trajectories must be first, all or none, not {other:?}"),
+    };
+    for k in traj_frames {
+        let positions = model.positions(&sequence.frames[k], times[k], &times)?;
+        npz.add_f32(&format!("traj_{k:03}"), &[sequence.frames[k].len(), times.len(), 3], positions.as_flattened())?;
+    }
+    for (k, flow) in model.scene_flow(&sequence.frames).iter().enumerate() {
+        npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+    }
+    npz.add_f64("timestamps", &[times.len()], &times)?;
+    npz.finish()?.flush()?;
+    eprintln!("wrote {}", args.out.display());
+    if let Some(path) = &args.model_out {
+        std::fs::write(path, model.to_bytes()).with_context(|| format!("writing {}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
