@@ -26,4 +26,5 @@
 pub mod fit;
 pub mod geometry;
 pub mod metrics;
+pub mod nn;
 pub mod trajectory;
