@@ -25,5 +25,6 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod losses;
 pub mod metrics;
 pub mod trajectory;
