@@ -25,6 +25,7 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod losses;
 pub mod metrics;
 pub mod nn;
 pub mod trajectory;
