@@ -25,5 +25,6 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod io;
 pub mod metrics;
 pub mod trajectory;
