@@ -26,6 +26,7 @@
 pub mod fit;
 pub mod geometry;
 pub mod losses;
+pub mod io;
 pub mod metrics;
 pub mod nn;
 pub mod trajectory;
