@@ -29,4 +29,5 @@ pub mod losses;
 pub mod io;
 pub mod metrics;
 pub mod nn;
+pub mod sim;
 pub mod trajectory;
