@@ -25,8 +25,8 @@
 
 pub mod fit;
 pub mod geometry;
-pub mod losses;
 pub mod io;
+pub mod losses;
 pub mod metrics;
 pub mod nn;
 pub mod sim;
