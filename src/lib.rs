@@ -25,5 +25,9 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod io;
+pub mod losses;
 pub mod metrics;
+pub mod nn;
+pub mod sim;
 pub mod trajectory;
