@@ -79,6 +79,19 @@ impl KdTree {
         let hits = tree.query(query).within::<SquaredEuclidean<f32>>(radius_m * radius_m).unsorted().execute();
         out.extend(hits.into_iter().map(|h| h.item as usize));
     }
+
+    /// Calls `visit` with the index of every point within `radius_m` of `query` (inclusive), in
+    /// no particular order, without allocating: the streaming form of [`KdTree::within`] for hot
+    /// loops that only count or scan the neighbours.
+    pub fn for_each_within(&self, query: &Point, radius_m: f32, mut visit: impl FnMut(usize)) {
+        let Some(tree) = self.tree.as_ref() else {
+            return;
+        };
+        tree.query(query)
+            .within::<SquaredEuclidean<f32>>(radius_m * radius_m)
+            .unsorted()
+            .visit(|h| visit(h.item as usize));
+    }
 }
 
 /// Brute-force twin of [`KdTree::nearest`]: a linear scan, O(n) per query.
@@ -168,6 +181,23 @@ mod tests {
                 let mut fast = out.clone();
                 fast.sort_unstable();
                 assert_eq!(fast, within_linear(&points, q, 0.8));
+            }
+        }
+    }
+
+    #[test]
+    fn streaming_radius_query_visits_the_same_points_as_within() {
+        for points in [random_cloud(2000, 6), flat_grid(40)] {
+            let tree = KdTree::new(&points);
+            let mut out = Vec::new();
+            let mut streamed = Vec::new();
+            for q in random_cloud(50, 7).iter().chain(points.iter().step_by(41)) {
+                tree.within(q, 0.8, &mut out);
+                out.sort_unstable();
+                streamed.clear();
+                tree.for_each_within(q, 0.8, |i| streamed.push(i));
+                streamed.sort_unstable();
+                assert_eq!(streamed, out);
             }
         }
     }

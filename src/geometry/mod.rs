@@ -1,7 +1,10 @@
 //! Point clouds and the geometry on them: nearest neighbours, clustering, ground removal,
 //! rigid transforms. Synchronous and free of I/O.
 
+pub mod dbscan;
+pub mod ground;
 pub mod knn;
+pub mod rigid;
 
 /// One point: metric x, y, z (m) in the sensor frame of the sweep it belongs to.
 ///
