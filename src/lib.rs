@@ -23,6 +23,7 @@
 //! runs a fit itself.
 #![warn(missing_docs)]
 
+pub mod cli;
 pub mod fit;
 pub mod geometry;
 pub mod io;

@@ -1,1 +1,37 @@
-fn main() {}
+//! The `mbnt` binary: a thin dispatcher over the library's command front ends.
+
+use clap::{Parser, Subcommand};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, simulate_cmd};
+
+/// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
+#[derive(Debug, Parser)]
+#[command(name = "mbnt", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Fit a method to frame files and write trajectories and scene-flow labels (.npz).
+    Fit(fit_cmd::FitArgs),
+    /// Write a synthetic LiDAR sequence with exact ground truth.
+    Simulate(simulate_cmd::SimulateArgs),
+    /// Compare methods and baselines on simulated sequences (or directories with ground truth).
+    Eval(eval_cmd::EvalArgs),
+    /// Time a fit phase by phase, faithful and fast modes side by side.
+    Bench(bench_cmd::BenchArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Fit(args) => fit_cmd::run(args),
+        Command::Simulate(args) => simulate_cmd::run(args),
+        Command::Eval(args) => eval_cmd::run(args),
+        Command::Bench(args) => bench_cmd::run(args),
+    }
+}

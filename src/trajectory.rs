@@ -43,10 +43,7 @@ pub enum QueryError {
 impl TimeAxis {
     /// A time axis over `frames` frames, in seconds when `timestamps_s` is given.
     pub fn new(timestamps_s: Option<Vec<f64>>, frames: usize) -> Self {
-        Self {
-            timestamps_s,
-            frames,
-        }
+        Self { timestamps_s, frames }
     }
 
     /// Number of frames T.
@@ -78,10 +75,7 @@ impl TimeAxis {
             return Ok(time);
         };
         // The last k with ts[k] <= time, so that ts[k] <= time < ts[k + 1].
-        let k = ts
-            .partition_point(|&t| t <= time)
-            .saturating_sub(1)
-            .min(self.frames - 2);
+        let k = ts.partition_point(|&t| t <= time).saturating_sub(1).min(self.frames - 2);
         Ok(k as f64 + (time - ts[k]) / (ts[k + 1] - ts[k]))
     }
 }
@@ -264,7 +258,12 @@ impl FittedModel {
                 let backward = networks.split_off(frames - 1);
                 Motion::PairFlows { forward: networks, backward }
             }
-            kind => return Err(format!("model kind {kind:?} with {} networks does not fit {frames} frames", header.networks)),
+            kind => {
+                return Err(format!(
+                    "model kind {kind:?} with {} networks does not fit {frames} frames",
+                    header.networks
+                ));
+            }
         };
         Ok(Self { method: header.method, time_axis: header.time_axis, report: header.report, motion })
     }
@@ -300,7 +299,14 @@ fn trajectory_at(row: &[f32], u: f64) -> [f64; 3] {
     d
 }
 
-fn trajectory_positions(mlp: &Mlp<f32>, frames: usize, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+fn trajectory_positions(
+    mlp: &Mlp<f32>,
+    frames: usize,
+    points: &[Point],
+    u_obs: f64,
+    u_times: &[f64],
+    out: &mut [Point],
+) {
     let mut input = Vec::new();
     let mut workspace = Workspace::default();
     encode_points(points, u_obs, frames, &mut input);

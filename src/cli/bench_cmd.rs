@@ -115,7 +115,13 @@ fn gemm_gflops(m: usize, k: usize, n: usize, reps: usize) -> f64 {
     let mut best = f64::INFINITY;
     for _ in 0..reps {
         let clock = Instant::now();
-        matmul(MatMut::row_major(&mut c, m, n), MatRef::row_major(&a, m, k), MatRef::row_major(&b, k, n), false, Threads::Pool);
+        matmul(
+            MatMut::row_major(&mut c, m, n),
+            MatRef::row_major(&a, m, k),
+            MatRef::row_major(&b, k, n),
+            false,
+            Threads::Pool,
+        );
         best = best.min(clock.elapsed().as_secs_f64());
     }
     std::hint::black_box(&c);
@@ -249,7 +255,8 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     let result = BenchResult { cpus, gemm, gemm_peak_gflops, modes, scaling };
     print_report(&result);
     if let Some(path) = &args.json {
-        std::fs::write(path, serde_json::to_vec_pretty(&result)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(path, serde_json::to_vec_pretty(&result)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }
@@ -264,7 +271,8 @@ fn dense_params(seed: u64) -> SimParams {
 }
 
 fn time_iterations(sequence: &Sequence, method: Method, iterations: usize) -> anyhow::Result<ScalingResult> {
-    let params = FitParams { mode: Some(Mode::Fast), iterations: Some(iterations), ..FitParams::default() }.check(method)?;
+    let params =
+        FitParams { mode: Some(Mode::Fast), iterations: Some(iterations), ..FitParams::default() }.check(method)?;
     let mut regular = Vec::new();
     let mut last = None::<Instant>;
     let model = fit_sequence(sequence, method, &params, &mut |p| {
@@ -283,7 +291,10 @@ fn time_iterations(sequence: &Sequence, method: Method, iterations: usize) -> an
         points_per_frame: fitted / sequence.frames.len(),
         seconds_per_iteration: regular.iter().sum::<f64>() / regular.len().max(1) as f64,
     };
-    eprintln!("  T = {}, {} points/frame: {:.3} s/iteration", result.frames, result.points_per_frame, result.seconds_per_iteration);
+    eprintln!(
+        "  T = {}, {} points/frame: {:.3} s/iteration",
+        result.frames, result.points_per_frame, result.seconds_per_iteration
+    );
     Ok(result)
 }
 
@@ -296,13 +307,29 @@ fn print_report(r: &BenchResult) {
     println!();
     println!(
         "{:<9} {:>6} {:>9} {:>9} | {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} | {:>8} {:>6} | {:>9} {:>8} | {:>6} {:>6}",
-        "mode", "iters", "s/iter", "s/valid", "fwd", "bwd", "nn", "multib", "cycle", "adam", "other", "GFLOP/s", "%peak",
-        "full fit", "peak MiB", "Acc.5", "Dyn.5"
+        "mode",
+        "iters",
+        "s/iter",
+        "s/valid",
+        "fwd",
+        "bwd",
+        "nn",
+        "multib",
+        "cycle",
+        "adam",
+        "other",
+        "GFLOP/s",
+        "%peak",
+        "full fit",
+        "peak MiB",
+        "Acc.5",
+        "Dyn.5"
     );
     for m in &r.modes {
         let t = &m.times;
         let per = |v: f64| 1000.0 * v / m.iterations.max(1) as f64;
-        let other = t.total_s - t.mlp_forward_s - t.mlp_backward_s - t.nearest_s - t.multibody_s - t.cycle_s - t.optimiser_s;
+        let other =
+            t.total_s - t.mlp_forward_s - t.mlp_backward_s - t.nearest_s - t.multibody_s - t.cycle_s - t.optimiser_s;
         println!(
             "{:<9} {:>6} {:>9.3} {:>9} | {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} | {:>8.1} {:>5.0}% | {:>8.0}{} {:>8.0} | {:>6} {:>6}",
             m.mode.name(),

@@ -12,11 +12,9 @@ use crate::fit::{FitParams, Method, Sequence, fit_sequence};
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
-use crate::metrics::{
-    SceneFlowMetrics, TrajectoryMetrics, average_over_pairs, scene_flow_metrics, trajectory_metrics,
-};
-use crate::io::npy::{NpyArray, read_npy};
+use crate::io::npy::{NpyArray, NpyData, read_npy};
 use crate::io::read_points_file;
+use crate::metrics::{SceneFlowMetrics, TrajectoryMetrics, average_over_pairs, scene_flow_metrics, trajectory_metrics};
 use crate::sim::{SimParams, SimSequence, simulate};
 
 /// Arguments of `mbnt eval`.
@@ -109,14 +107,15 @@ impl Labelled {
         let file = std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
         let mut zip = zip::ZipArchive::new(std::io::BufReader::new(file))?;
         let mut array = |name: &str| -> anyhow::Result<NpyArray> {
-            let mut entry = zip.by_name(&format!("{name}.npy")).with_context(|| format!("{name} missing in {}", path.display()))?;
+            let mut entry =
+                zip.by_name(&format!("{name}.npy")).with_context(|| format!("{name} missing in {}", path.display()))?;
             let mut bytes = Vec::new();
             std::io::Read::read_to_end(&mut entry, &mut bytes)?;
-            Ok(read_npy(&bytes).with_context(|| format!("{name} in {}", path.display()))?)
+            read_npy(&bytes).with_context(|| format!("{name} in {}", path.display()))
         };
         let t = frames.len();
         let points = |a: NpyArray| -> anyhow::Result<Vec<Point>> {
-            let v = a.to_f32().context("expected a float array")?;
+            let v = as_f32(a).context("expected a float array")?;
             Ok(v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
         };
         let mut flows = Vec::new();
@@ -125,15 +124,42 @@ impl Labelled {
             if k + 1 < t {
                 flows.push(points(array(&format!("flow_{k:03}"))?)?);
             }
-            is_ground.push(array(&format!("is_ground_{k:03}"))?.to_bool().context("is_ground must be bool")?);
+            is_ground.push(as_bool(array(&format!("is_ground_{k:03}"))?).context("is_ground must be bool")?);
         }
-        let traj = array("traj_000")?.to_f32().context("traj_000 must be float")?;
-        let end_positions = traj.chunks_exact(3 * t).map(|row| {
-            let c = &row[3 * (t - 1)..];
-            [c[0], c[1], c[2]]
-        }).collect();
-        let dynamic_0 = array("is_dynamic_000")?.to_bool().context("is_dynamic must be bool")?;
-        Ok(Labelled { name: dir.display().to_string(), frames, timestamps_s, flows, end_positions, is_ground, dynamic_0 })
+        let traj = as_f32(array("traj_000")?).context("traj_000 must be float")?;
+        let end_positions = traj
+            .chunks_exact(3 * t)
+            .map(|row| {
+                let c = &row[3 * (t - 1)..];
+                [c[0], c[1], c[2]]
+            })
+            .collect();
+        let dynamic_0 = as_bool(array("is_dynamic_000")?).context("is_dynamic must be bool")?;
+        Ok(Labelled {
+            name: dir.display().to_string(),
+            frames,
+            timestamps_s,
+            flows,
+            end_positions,
+            is_ground,
+            dynamic_0,
+        })
+    }
+}
+
+fn as_f32(a: NpyArray) -> Option<Vec<f32>> {
+    match a.data {
+        NpyData::F32(v) => Some(v),
+        NpyData::F64(v) => Some(v.into_iter().map(|x| x as f32).collect()),
+        _ => None,
+    }
+}
+
+fn as_bool(a: NpyArray) -> Option<Vec<bool>> {
+    match a.data {
+        NpyData::Bool(v) => Some(v),
+        NpyData::U8(v) => Some(v.into_iter().map(|x| x != 0).collect()),
+        _ => None,
     }
 }
 
@@ -154,9 +180,7 @@ fn score(name: &str, seq: &Labelled, pred: &Prediction) -> MethodResult {
         .collect();
     let ground = &seq.is_ground[0];
     let select = |want_dynamic: Option<bool>| -> Vec<bool> {
-        (0..seq.end_positions.len())
-            .map(|i| !ground[i] && want_dynamic.is_none_or(|d| seq.dynamic_0[i] == d))
-            .collect()
+        (0..seq.end_positions.len()).map(|i| !ground[i] && want_dynamic.is_none_or(|d| seq.dynamic_0[i] == d)).collect()
     };
     let truth_end = &seq.end_positions;
     MethodResult {
@@ -204,10 +228,7 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
                 .collect()
         })
         .collect();
-    let end_positions = sim.frames[0]
-        .iter()
-        .map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q)))
-        .collect();
+    let end_positions = sim.frames[0].iter().map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q))).collect();
     Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64() }
 }
 
@@ -276,7 +297,18 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 fn print_table(results: &[MethodResult]) {
     println!(
         "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} | {:>8}",
-        "method", "sequence", "EPE", "Acc.05", "Acc.10", "Outl.", "Angle", "LT-EPE", "Acc.5", "Acc1.0", "St.5", "Dyn.5",
+        "method",
+        "sequence",
+        "EPE",
+        "Acc.05",
+        "Acc.10",
+        "Outl.",
+        "Angle",
+        "LT-EPE",
+        "Acc.5",
+        "Acc1.0",
+        "St.5",
+        "Dyn.5",
         "fit s"
     );
     for r in results {

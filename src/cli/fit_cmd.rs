@@ -57,9 +57,7 @@ pub(crate) fn frame_paths(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
         let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
             .with_context(|| format!("reading directory {}", dir.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| {
-                p.extension().and_then(|e| e.to_str()).is_some_and(|e| FRAME_EXTENSIONS.contains(&e))
-            })
+            .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| FRAME_EXTENSIONS.contains(&e)))
             .collect();
         paths.sort();
         if paths.is_empty() {

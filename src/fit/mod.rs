@@ -117,7 +117,8 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let (frames, frame_reports) = prepare::prepare_frames(sequence, params, method.uses_rigidity(), method.is_trajectory())?;
+    let (frames, frame_reports) =
+        prepare::prepare_frames(sequence, params, method.uses_rigidity(), method.is_trajectory())?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
     let model = if method.is_trajectory() {
         let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;
@@ -141,35 +142,20 @@ pub fn fit_sequence(
 pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
     let frames = sequence.frames.len();
     if frames < 2 {
-        return Err(FitError::InvalidSequence(format!(
-            "needs at least 2 frames, got {frames}"
-        )));
+        return Err(FitError::InvalidSequence(format!("needs at least 2 frames, got {frames}")));
     }
     if let Some(k) = sequence.frames.iter().position(|f| f.is_empty()) {
-        return Err(FitError::InvalidSequence(format!(
-            "frame {k} has no points"
-        )));
+        return Err(FitError::InvalidSequence(format!("frame {k} has no points")));
     }
-    if let Some(k) = sequence
-        .frames
-        .iter()
-        .position(|f| f.iter().flatten().any(|c| !c.is_finite()))
-    {
-        return Err(FitError::InvalidSequence(format!(
-            "frame {k} has a non-finite coordinate"
-        )));
+    if let Some(k) = sequence.frames.iter().position(|f| f.iter().flatten().any(|c| !c.is_finite())) {
+        return Err(FitError::InvalidSequence(format!("frame {k} has a non-finite coordinate")));
     }
     if let Some(ts) = &sequence.timestamps_s {
         if ts.len() != frames {
-            return Err(FitError::InvalidSequence(format!(
-                "{} timestamps for {frames} frames",
-                ts.len()
-            )));
+            return Err(FitError::InvalidSequence(format!("{} timestamps for {frames} frames", ts.len())));
         }
         if ts.windows(2).any(|w| w[1] <= w[0]) || ts.iter().any(|t| !t.is_finite()) {
-            return Err(FitError::InvalidSequence(
-                "timestamps must be finite and strictly increasing".into(),
-            ));
+            return Err(FitError::InvalidSequence("timestamps must be finite and strictly increasing".into()));
         }
     }
     Ok(())

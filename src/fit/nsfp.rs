@@ -85,8 +85,16 @@ fn pair_loss(
     s.moved.extend(x.iter().zip(s.flow.chunks_exact(3)).map(|(p, v)| [p[0] + v[0], p[1] + v[1], p[2] + v[2]]));
     s.grad_moved.clear();
     s.grad_moved.resize(n, [0.0; 3]);
-    let forward_cd =
-        truncated_chamfer(&s.moved, &p2.full.points, &p2.full.tree, trunc, 1.0, &mut s.grad_moved, None, &mut s.chamfer);
+    let forward_cd = truncated_chamfer(
+        &s.moved,
+        &p2.full.points,
+        &p2.full.tree,
+        trunc,
+        1.0,
+        &mut s.grad_moved,
+        None,
+        &mut s.chamfer,
+    );
 
     // Backward term: CD(y - g(y), P1) with y = x + f(x); y depends on f, so gradients of the
     // backward term reach f as well.
@@ -99,8 +107,16 @@ fn pair_loss(
         .extend(s.moved.iter().zip(s.back_flow.chunks_exact(3)).map(|(p, v)| [p[0] - v[0], p[1] - v[1], p[2] - v[2]]));
     s.grad_returned.clear();
     s.grad_returned.resize(n, [0.0; 3]);
-    let backward_cd =
-        truncated_chamfer(&s.returned, &p1.full.points, &p1.full.tree, trunc, 1.0, &mut s.grad_returned, None, &mut s.chamfer);
+    let backward_cd = truncated_chamfer(
+        &s.returned,
+        &p1.full.points,
+        &p1.full.tree,
+        trunc,
+        1.0,
+        &mut s.grad_returned,
+        None,
+        &mut s.chamfer,
+    );
     s.grad_back.clear();
     s.grad_back.extend(s.grad_returned.iter().flat_map(|g| [-g[0], -g[1], -g[2]]));
     s.grad_input.clear();
@@ -141,8 +157,8 @@ fn pair_loss(
             terms.rigidity += value.loss / p1.full.clusters.len() as f64;
             for (&j, gr) in s.subsample.iter().zip(&s.cluster_grad) {
                 let i = cluster[j as usize] as usize;
-                for c in 0..3 {
-                    s.grad_flow[3 * i + c] += gr[c];
+                for (g, v) in s.grad_flow[3 * i..3 * i + 3].iter_mut().zip(gr) {
+                    *g += v;
                 }
             }
         }
@@ -182,8 +198,7 @@ pub fn fit_pairs(
         for iteration in 0..params.iterations {
             grads_f.fill_zero();
             grads_g.fill_zero();
-            let terms =
-                pair_loss(&f, &g, p1, p2, params, rigidity, &mut grads_f, &mut grads_g, &mut scratch, &mut rng);
+            let terms = pair_loss(&f, &g, p1, p2, params, rigidity, &mut grads_f, &mut grads_g, &mut scratch, &mut rng);
             if !terms.total.is_finite() {
                 return Err(FitError::Diverged { iteration: done, loss: terms.total });
             }

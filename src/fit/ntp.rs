@@ -85,7 +85,11 @@ impl Problem<'_> {
     /// a random part otherwise (the whole frame when frames are not split).
     fn pick<'f>(&'f self, k: usize, validation: bool, rng: &mut ChaCha8Rng) -> &'f PointSet {
         let frame = &self.frames[k];
-        if validation || frame.part_count() == 1 { frame.part(0) } else { frame.part(rng.random_range(0..frame.part_count())) }
+        if validation || frame.part_count() == 1 {
+            frame.part(0)
+        } else {
+            frame.part(rng.random_range(0..frame.part_count()))
+        }
     }
 
     /// Loss terms of reference frame `t`; adds their gradients into `grads`.

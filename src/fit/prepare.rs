@@ -8,10 +8,10 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{FitError, Sequence, ValidFitParams};
+use crate::geometry::Point;
 use crate::geometry::dbscan::{clusters, dbscan};
 use crate::geometry::ground::{FilterReport, GroundParamsError, PreprocessParams, preprocess};
 use crate::geometry::knn::KdTree;
-use crate::geometry::Point;
 
 /// What preparation did to one frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]

@@ -123,15 +123,22 @@ fn the_same_seed_gives_the_same_model() {
     let params = small_params(Method::Mbnt, 20);
     let a = fit_sequence(&sequence, Method::Mbnt, &params, &mut |_| ControlFlow::Continue(())).unwrap();
     let b = fit_sequence(&sequence, Method::Mbnt, &params, &mut |_| ControlFlow::Continue(())).unwrap();
-    assert_eq!(a.to_bytes(), b.to_bytes());
+    // Bytes differ only in the report's wall times; the weights must be bit-identical, so the
+    // answers are.
+    let times = [0.0, 1.0, 2.0];
+    assert_eq!(
+        a.positions(&sequence.frames[0], 0.0, &times).unwrap(),
+        b.positions(&sequence.frames[0], 0.0, &times).unwrap()
+    );
+    assert_eq!(a.report().best_iteration, b.report().best_iteration);
 }
 
 #[test]
 fn a_query_at_the_observation_time_returns_the_point_itself() {
     let (sequence, _) = two_bodies(4, 100, 2);
     for method in [Method::Ntp, Method::Nsfp] {
-        let model = fit_sequence(&sequence, method, &small_params(method, 5), &mut |_| ControlFlow::Continue(()))
-            .unwrap();
+        let model =
+            fit_sequence(&sequence, method, &small_params(method, 5), &mut |_| ControlFlow::Continue(())).unwrap();
         for t in [0.0, 1.0, 2.5, 3.0] {
             let pts = &sequence.frames[1][..20];
             let at = model.positions(pts, t, &[t]).unwrap();
@@ -161,8 +168,8 @@ fn progress_reports_every_iteration_and_cancel_stops_the_fit() {
 fn a_model_survives_serialisation_and_bad_bytes_are_an_error() {
     let (sequence, _) = two_bodies(3, 100, 5);
     for method in [Method::Mbnt, Method::Mbnsf] {
-        let model = fit_sequence(&sequence, method, &small_params(method, 3), &mut |_| ControlFlow::Continue(()))
-            .unwrap();
+        let model =
+            fit_sequence(&sequence, method, &small_params(method, 3), &mut |_| ControlFlow::Continue(())).unwrap();
         let bytes = model.to_bytes();
         let back = crate::trajectory::FittedModel::from_bytes(&bytes).unwrap();
         assert_eq!(back.to_bytes(), bytes);

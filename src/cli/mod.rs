@@ -1,0 +1,6 @@
+//! The command-line front ends of the binary: each subcommand's arguments and its `run`.
+
+pub mod bench_cmd;
+pub mod eval_cmd;
+pub mod fit_cmd;
+pub mod simulate_cmd;
