@@ -868,3 +868,43 @@ proptest! {
         let _ = npy::read_npy(&bytes);
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn every_format_round_trips_arbitrary_finite_points(
+        points in proptest::collection::vec(proptest::array::uniform3(-1.0e4f32..1.0e4), 0..40),
+    ) {
+        // Rust prints the shortest decimal that parses back to the same f32, so the ascii
+        // formats are exact too.
+        let files = [
+            ply_ascii(&points),
+            ply_binary_double(&points),
+            ply_binary_vertex_list(&points),
+            pcd_ascii(&points),
+            pcd_binary_f64(&points),
+            npy_f32_n4(&points),
+            npy_f64_n4(&points),
+        ];
+        for bytes in &files {
+            prop_assert_eq!(&read_points(bytes, None).unwrap(), &points);
+        }
+        prop_assert_eq!(&read_points(&kitti_bin(&points), Some("x.bin")).unwrap(), &points);
+    }
+
+    #[test]
+    fn npy_round_trips_any_shape_bit_exactly(
+        shape in proptest::collection::vec(0usize..5, 0..4),
+        seed_bits in proptest::collection::vec(any::<u32>(), 64),
+    ) {
+        let n: usize = shape.iter().product();
+        // Arbitrary bit patterns, NaNs included: the array reader does not judge values.
+        let data: Vec<f32> = (0..n).map(|i| f32::from_bits(seed_bits[i % 64].rotate_left(i as u32))).collect();
+        let bytes = write(|b| npy::write_npy_f32(b, &shape, &data));
+        let arr = npy::read_npy(&bytes).unwrap();
+        prop_assert_eq!(&arr.shape, &shape);
+        let NpyData::F32(got) = arr.data else { panic!("dtype changed") };
+        prop_assert_eq!(got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), data.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
+    }
+}
