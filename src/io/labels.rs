@@ -63,7 +63,7 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
         Field::new("is_valid", DataType::Boolean, false),
     ]));
     let mut zip = zip::ZipWriter::new(w);
-    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated).large_file(true);
+    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
     let mut buf = Vec::new();
     for (k, flow) in flows.iter().enumerate() {
         let column =
@@ -81,7 +81,8 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
         writer.write(&batch)?;
         writer.finish()?;
         drop(writer);
-        zip.start_file(format!("{k:06}.feather"), options)?;
+        // zip64 records only when an entry could exceed the classic u32 sizes.
+        zip.start_file(format!("{k:06}.feather"), options.large_file(buf.len() as u64 >= u32::MAX as u64 - 4096))?;
         zip.write_all(&buf)?;
     }
     Ok(zip.finish()?)

@@ -127,7 +127,7 @@ pub enum WriteError {
         name: String,
         /// Declared shape.
         shape: Vec<usize>,
-        /// Product of the shape (None-safe: saturates on overflow).
+        /// Product of the shape (`usize::MAX` if it overflows).
         expected: usize,
         /// Elements given.
         got: usize,

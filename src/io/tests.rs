@@ -658,31 +658,94 @@ fn npz_rejects_bad_shapes_and_names() {
     assert_eq!(unzip(&bytes).len(), 1);
 }
 
-fn python_with_numpy() -> bool {
-    std::process::Command::new("python3").args(["-c", "import numpy"]).output().is_ok_and(|o| o.status.success())
+/// A Python interpreter that can import numpy: the one on PATH, else the system one (a pyenv
+/// shim may shadow a distribution's numpy).
+fn python_with_numpy() -> Option<&'static str> {
+    ["python3", "/usr/bin/python3"].into_iter().find(|py| {
+        std::process::Command::new(py).args(["-c", "import numpy"]).output().is_ok_and(|o| o.status.success())
+    })
+}
+
+fn run_python(py: &str, script: &str, arg: &std::path::Path) {
+    let out = std::process::Command::new(py).arg("-c").arg(script).arg(arg).output().unwrap();
+    assert!(
+        out.status.success(),
+        "python failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 #[test]
 fn numpy_load_reads_the_npz() {
-    if !python_with_numpy() {
-        eprintln!("skipped: python3 with numpy is not available");
+    let Some(py) = python_with_numpy() else {
+        eprintln!("skipped: no python3 with numpy");
         return;
-    }
+    };
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("sample.npz");
     std::fs::write(&path, sample_npz()).unwrap();
     let script = "import sys, numpy as np\n\
         z = np.load(sys.argv[1])\n\
+        assert sorted(z.files) == ['classes', 'empty', 'labels', 'mask', 'points', 'times'], z.files\n\
         assert z['points'].dtype == np.float32 and z['points'].shape == (2, 3)\n\
         assert z['points'].tolist() == [[1, 2, 3], [4, 5, 6]]\n\
         assert z['times'].dtype == np.float64 and z['times'].tolist() == [0.0, 0.1, 0.2]\n\
         assert z['labels'].dtype == np.int32 and z['labels'].tolist() == [[-1, 0], [1, 2]]\n\
         assert z['classes'].dtype == np.uint8 and z['classes'].tolist() == [0, 1, 2, 255]\n\
         assert z['mask'].dtype == np.bool_ and z['mask'].tolist() == [[True], [False]]\n\
-        assert z['empty'].shape == (0, 3)\n\
-        print('ok')\n";
-    let out = std::process::Command::new("python3").arg("-c").arg(script).arg(&path).output().unwrap();
-    assert!(out.status.success(), "numpy.load failed: {}", String::from_utf8_lossy(&out.stderr));
+        assert z['empty'].shape == (0, 3) and z['empty'].dtype == np.float32\n";
+    run_python(py, script, &path);
+}
+
+#[test]
+fn numpy_save_output_is_read_by_read_npy_and_read_points() {
+    let Some(py) = python_with_numpy() else {
+        eprintln!("skipped: no python3 with numpy");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let script = "import sys, os, numpy as np\n\
+        d = sys.argv[1]\n\
+        a = np.arange(12, dtype=np.float64).reshape(3, 4) * 0.5\n\
+        np.save(os.path.join(d, 'c.npy'), a)\n\
+        np.save(os.path.join(d, 'f.npy'), np.asfortranarray(a.astype(np.float32)))\n\
+        np.save(os.path.join(d, 'b.npy'), np.array([[True, False], [False, True]]))\n\
+        np.save(os.path.join(d, 'u.npy'), np.arange(5, dtype=np.uint8))\n\
+        np.save(os.path.join(d, 'i.npy'), np.arange(-2, 4, dtype=np.int32).reshape(2, 3, 1))\n";
+    run_python(py, script, dir.path());
+    let want: Vec<Point> = (0..3).map(|i| [i as f32 * 2.0, i as f32 * 2.0 + 0.5, i as f32 * 2.0 + 1.0]).collect();
+    assert_eq!(read_points_file(&dir.path().join("c.npy")).unwrap(), want);
+    assert_eq!(read_points_file(&dir.path().join("f.npy")).unwrap(), want);
+    let read = |n: &str| npy::read_npy(&std::fs::read(dir.path().join(n)).unwrap()).unwrap();
+    assert_eq!(read("b.npy"), NpyArray { shape: vec![2, 2], data: NpyData::Bool(vec![true, false, false, true]) });
+    assert_eq!(read("u.npy"), NpyArray { shape: vec![5], data: NpyData::U8(vec![0, 1, 2, 3, 4]) });
+    assert_eq!(read("i.npy"), NpyArray { shape: vec![2, 3, 1], data: NpyData::I32(vec![-2, -1, 0, 1, 2, 3]) });
+}
+
+#[test]
+fn python_zipfile_and_literal_eval_read_the_npz() {
+    // Without numpy, check what numpy.load relies on: Python's zipfile opens the archive and
+    // each header is a Python literal with the data right after it, 64-byte aligned.
+    let py = "python3";
+    if std::process::Command::new(py).arg("--version").output().is_err() {
+        eprintln!("skipped: no python3");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sample.npz");
+    std::fs::write(&path, sample_npz()).unwrap();
+    let script = "import sys, zipfile, ast, struct\n\
+        z = zipfile.ZipFile(sys.argv[1])\n\
+        assert z.testzip() is None\n\
+        b = z.read('points.npy')\n\
+        assert b[:8] == b'\\x93NUMPY\\x01\\x00'\n\
+        n = struct.unpack('<H', b[8:10])[0]\n\
+        h = ast.literal_eval(b[10:10 + n].decode('latin1'))\n\
+        assert h == {'descr': '<f4', 'fortran_order': False, 'shape': (2, 3)}, h\n\
+        assert (10 + n) % 64 == 0\n\
+        assert struct.unpack('<6f', b[10 + n:]) == (1, 2, 3, 4, 5, 6)\n";
+    run_python(py, script, &path);
 }
 
 // ---------- labels ----------
@@ -803,5 +866,45 @@ proptest! {
         let _ = read_points(&bytes, Some(name));
         let _ = read_points(&bytes, None);
         let _ = npy::read_npy(&bytes);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn every_format_round_trips_arbitrary_finite_points(
+        points in proptest::collection::vec(proptest::array::uniform3(-1.0e4f32..1.0e4), 0..40),
+    ) {
+        // Rust prints the shortest decimal that parses back to the same f32, so the ascii
+        // formats are exact too.
+        let files = [
+            ply_ascii(&points),
+            ply_binary_double(&points),
+            ply_binary_vertex_list(&points),
+            pcd_ascii(&points),
+            pcd_binary_f64(&points),
+            npy_f32_n4(&points),
+            npy_f64_n4(&points),
+        ];
+        for bytes in &files {
+            prop_assert_eq!(&read_points(bytes, None).unwrap(), &points);
+        }
+        prop_assert_eq!(&read_points(&kitti_bin(&points), Some("x.bin")).unwrap(), &points);
+    }
+
+    #[test]
+    fn npy_round_trips_any_shape_bit_exactly(
+        shape in proptest::collection::vec(0usize..5, 0..4),
+        seed_bits in proptest::collection::vec(any::<u32>(), 64),
+    ) {
+        let n: usize = shape.iter().product();
+        // Arbitrary bit patterns, NaNs included: the array reader does not judge values.
+        let data: Vec<f32> = (0..n).map(|i| f32::from_bits(seed_bits[i % 64].rotate_left(i as u32))).collect();
+        let bytes = write(|b| npy::write_npy_f32(b, &shape, &data));
+        let arr = npy::read_npy(&bytes).unwrap();
+        prop_assert_eq!(&arr.shape, &shape);
+        let NpyData::F32(got) = arr.data else { panic!("dtype changed") };
+        prop_assert_eq!(got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), data.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
     }
 }
