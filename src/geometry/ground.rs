@@ -476,7 +476,7 @@ mod tests {
         let (mut pts, mut truth) = scene(z, &boxes, 1);
         // A stray return 10 m under the road (KITTI frame 0 has one) must not drag the ground
         // estimate down around it, or the road within ~50 m would stop being ground.
-        pts.push([8.0, -6.0, -11.73]);
+        pts.push([-20.0, 20.0, -11.73]);
         truth.push(true);
         check_scene(&pts, &truth, z);
     }
