@@ -117,8 +117,7 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let (frames, frame_reports) =
-        prepare::prepare_frames(sequence, params, method.uses_rigidity(), method.is_trajectory())?;
+    let (frames, frame_reports) = prepare::prepare_frames(sequence, params, method.uses_rigidity(), true)?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
     let model = if method.is_trajectory() {
         let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;

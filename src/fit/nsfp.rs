@@ -4,10 +4,10 @@
 
 use std::ops::ControlFlow;
 
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::prepare::PreparedFrame;
+use super::prepare::{PointSet, PreparedFrame};
 use super::{FitError, LossTerms, Progress, ValidFitParams};
 use crate::geometry::Point;
 use crate::losses::chamfer::{ChamferScratch, truncated_chamfer};
@@ -60,8 +60,8 @@ struct Scratch {
 fn pair_loss(
     f: &Mlp<f32>,
     g: &Mlp<f32>,
-    p1: &PreparedFrame,
-    p2: &PreparedFrame,
+    p1: &PointSet,
+    p2: &PointSet,
     params: &ValidFitParams,
     rigidity: bool,
     grads_f: &mut Gradients<f32>,
@@ -69,7 +69,7 @@ fn pair_loss(
     s: &mut Scratch,
     rng: &mut ChaCha8Rng,
 ) -> LossTerms {
-    let x = &p1.full.points;
+    let x = &p1.points;
     let n = x.len();
     let trunc = params.chamfer_truncation_m2;
     s.input.clear();
@@ -85,16 +85,8 @@ fn pair_loss(
     s.moved.extend(x.iter().zip(s.flow.chunks_exact(3)).map(|(p, v)| [p[0] + v[0], p[1] + v[1], p[2] + v[2]]));
     s.grad_moved.clear();
     s.grad_moved.resize(n, [0.0; 3]);
-    let forward_cd = truncated_chamfer(
-        &s.moved,
-        &p2.full.points,
-        &p2.full.tree,
-        trunc,
-        1.0,
-        &mut s.grad_moved,
-        None,
-        &mut s.chamfer,
-    );
+    let forward_cd =
+        truncated_chamfer(&s.moved, &p2.points, &p2.tree, trunc, 1.0, &mut s.grad_moved, None, &mut s.chamfer);
 
     // Backward term: CD(y - g(y), P1) with y = x + f(x); y depends on f, so gradients of the
     // backward term reach f as well.
@@ -107,16 +99,8 @@ fn pair_loss(
         .extend(s.moved.iter().zip(s.back_flow.chunks_exact(3)).map(|(p, v)| [p[0] - v[0], p[1] - v[1], p[2] - v[2]]));
     s.grad_returned.clear();
     s.grad_returned.resize(n, [0.0; 3]);
-    let backward_cd = truncated_chamfer(
-        &s.returned,
-        &p1.full.points,
-        &p1.full.tree,
-        trunc,
-        1.0,
-        &mut s.grad_returned,
-        None,
-        &mut s.chamfer,
-    );
+    let backward_cd =
+        truncated_chamfer(&s.returned, &p1.points, &p1.tree, trunc, 1.0, &mut s.grad_returned, None, &mut s.chamfer);
     s.grad_back.clear();
     s.grad_back.extend(s.grad_returned.iter().flat_map(|g| [-g[0], -g[1], -g[2]]));
     s.grad_input.clear();
@@ -130,9 +114,9 @@ fn pair_loss(
     }
 
     let mut terms = LossTerms { chamfer: f64::from(forward_cd + backward_cd), ..LossTerms::default() };
-    if rigidity && params.rigidity_weight > 0.0 && !p1.full.clusters.is_empty() {
-        let weight = params.rigidity_weight / p1.full.clusters.len() as f32;
-        for cluster in &p1.full.clusters {
+    if rigidity && params.rigidity_weight > 0.0 && !p1.clusters.is_empty() {
+        let weight = params.rigidity_weight / p1.clusters.len() as f32;
+        for cluster in &p1.clusters {
             subsample_indices(cluster.len(), params.max_cluster_points, rng, &mut s.subsample);
             s.cluster_points.clear();
             s.cluster_moved.clear();
@@ -154,7 +138,7 @@ fn pair_loss(
             ) else {
                 continue;
             };
-            terms.rigidity += value.loss / p1.full.clusters.len() as f64;
+            terms.rigidity += value.loss / p1.clusters.len() as f64;
             for (&j, gr) in s.subsample.iter().zip(&s.cluster_grad) {
                 let i = cluster[j as usize] as usize;
                 for (g, v) in s.grad_flow[3 * i..3 * i + 3].iter_mut().zip(gr) {
@@ -191,13 +175,18 @@ pub fn fit_pairs(
     let mut done = 0;
 
     for k in 0..pairs {
-        let (p1, p2) = (&frames[k], &frames[k + 1]);
+        // Fast mode: each iteration fits a random part of each frame (the whole frame otherwise).
+        let pick = |frame: &PreparedFrame, rng: &mut ChaCha8Rng| -> usize {
+            if frame.part_count() == 1 { 0 } else { rng.random_range(0..frame.part_count()) }
+        };
         let mut best = (f64::INFINITY, f.clone(), g.clone());
         let mut since_best = 0;
         let mut ran = 0;
         for iteration in 0..params.iterations {
             grads_f.fill_zero();
             grads_g.fill_zero();
+            let (a, b) = (pick(&frames[k], &mut rng), pick(&frames[k + 1], &mut rng));
+            let (p1, p2) = (frames[k].part(a), frames[k + 1].part(b));
             let terms = pair_loss(&f, &g, p1, p2, params, rigidity, &mut grads_f, &mut grads_g, &mut scratch, &mut rng);
             if !terms.total.is_finite() {
                 return Err(FitError::Diverged { iteration: done, loss: terms.total });

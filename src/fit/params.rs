@@ -96,8 +96,8 @@ pub struct FitParams {
     /// `faithful` (method.md exactly) or `fast` (default): sets the defaults of
     /// `sample_points`, `max_cluster_points` and `validation_patience`; explicit values win.
     pub mode: Option<Mode>,
-    /// Trajectory methods: points of a reference frame used per iteration, drawn at random
-    /// (0 = all points; fast default 8192, faithful 0).
+    /// Points of a frame used per iteration (a reference frame, or each frame of a pair),
+    /// drawn at random (0 = all points; fast default 8192, faithful 0).
     pub sample_points: Option<usize>,
     /// Trajectory methods: stop once this many validations in a row did not improve the best
     /// validation loss (0 = never; fast default 8, faithful 0).

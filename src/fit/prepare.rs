@@ -146,3 +146,32 @@ pub fn prepare_frames(
     }
     Ok(prepared.into_iter().unzip())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parts_partition_the_frame_and_restrict_its_clusters() {
+        let points: Vec<Point> = (0..1000).map(|i| [i as f32 * 0.01, (i % 7) as f32, 0.0]).collect();
+        let clusters = vec![(0..300).collect::<Vec<u32>>(), (500..505).collect()];
+        let full = PointSet { tree: KdTree::new(&points), points, clusters };
+        let parts = split_into_parts(&full, 256, 3);
+        assert_eq!(parts.len(), 4);
+        let mut seen: Vec<Point> = parts.iter().flat_map(|p| p.points.iter().copied()).collect();
+        seen.sort_by(|a, b| a[0].total_cmp(&b[0]));
+        assert_eq!(seen, full.points, "every point in exactly one part");
+        for part in &parts {
+            assert!((240..=260).contains(&part.points.len()), "{}", part.points.len());
+            // The first cluster (x < 3 m) survives in every part with only its own members.
+            let first = &part.clusters[0];
+            assert!(first.len() > 50);
+            assert!(first.iter().all(|&i| part.points[i as usize][0] < 3.0));
+            let in_first = part.points.iter().filter(|p| p[0] < 3.0).count();
+            assert_eq!(first.len(), in_first);
+        }
+        assert_eq!(split_into_parts(&full, 256, 3).len(), 4);
+        assert!(split_into_parts(&full, 0, 3).is_empty());
+        assert!(split_into_parts(&full, 5000, 3).is_empty());
+    }
+}
