@@ -403,3 +403,324 @@ pub fn subsample_indices(n: usize, max: usize, rng: &mut impl rand::Rng, out: &m
     out.extend(picked.iter().map(|i| i as u32));
     out.sort_unstable();
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    type P64 = [f64; 3];
+
+    fn random_cluster(n: usize, half_extent_m: f64, rng: &mut ChaCha8Rng) -> Vec<P64> {
+        (0..n).map(|_| std::array::from_fn(|_| rng.random_range(-half_extent_m..half_extent_m))).collect()
+    }
+
+    /// Rotation about a unit axis by `angle` (Rodrigues), then translation `t`.
+    fn rigid(axis: P64, angle: f64, t: P64) -> impl Fn(&P64) -> P64 {
+        let len = (axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]).sqrt();
+        let [x, y, z] = axis.map(|a| a / len);
+        let (s, c) = angle.sin_cos();
+        let r = [
+            [c + x * x * (1.0 - c), x * y * (1.0 - c) - z * s, x * z * (1.0 - c) + y * s],
+            [y * x * (1.0 - c) + z * s, c + y * y * (1.0 - c), y * z * (1.0 - c) - x * s],
+            [z * x * (1.0 - c) - y * s, z * y * (1.0 - c) + x * s, c + z * z * (1.0 - c)],
+        ];
+        move |p: &P64| std::array::from_fn(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + t[i])
+    }
+
+    fn to_f32(c: &[P64]) -> Vec<Point> {
+        c.iter().map(|p| p.map(|x| x as f32)).collect()
+    }
+
+    /// Runs the generic loss with a fresh gradient buffer.
+    fn run64(
+        points: &[P64],
+        moved: &[P64],
+        thr: f64,
+        iters: usize,
+        tol: f64,
+        weight: f64,
+    ) -> (MultibodyValue, Vec<P64>) {
+        let mut grad = vec![[0.0; 3]; points.len()];
+        let mut scratch = MultibodyScratch::<f64>::new();
+        let v = multibody_loss_generic(points, moved, thr, iters, tol, weight, &mut grad, &mut scratch).unwrap();
+        (v, grad)
+    }
+
+    /// Dense brute-force twin: the full n x n matrix, textbook power iteration and the gradient
+    /// summed over ordered pairs straight from the definition.
+    fn dense_reference(points: &[P64], moved: &[P64], thr: f64, iters: usize, tol: f64) -> (MultibodyValue, Vec<P64>) {
+        let n = points.len();
+        let dist = |a: &P64, b: &P64| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        let raw = |i: usize, j: usize| {
+            let r = dist(&points[i], &points[j]) - dist(&moved[i], &moved[j]);
+            1.0 - r * r / (thr * thr)
+        };
+        let a: Vec<Vec<f64>> =
+            (0..n).map(|i| (0..n).map(|j| if i == j { 1.0 } else { raw(i, j).max(0.0) }).collect()).collect();
+        let times =
+            |v: &[f64]| -> Vec<f64> { a.iter().map(|row| row.iter().zip(v).map(|(x, y)| x * y).sum()).collect() };
+        let mut v = vec![1.0 / (n as f64).sqrt(); n];
+        let mut steps = 0;
+        while steps < iters {
+            let w = times(&v);
+            let norm = w.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let next: Vec<f64> = w.iter().map(|x| x / norm).collect();
+            let change = next.iter().zip(&v).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            let largest = next.iter().fold(0.0, |m: f64, x| m.max(x.abs()));
+            v = next;
+            steps += 1;
+            if change <= tol * largest {
+                break;
+            }
+        }
+        let q: f64 = times(&v).iter().zip(&v).map(|(x, y)| x * y).sum();
+        let mut grad = vec![[0.0; 3]; n];
+        for i in 0..n {
+            for j in 0..n {
+                let dm = dist(&moved[i], &moved[j]);
+                if i == j || raw(i, j) <= 0.0 || dm == 0.0 {
+                    continue;
+                }
+                let r = dist(&points[i], &points[j]) - dm;
+                // d(-ln q)/dA_ij = -v_i v_j / q for each of the two ordered entries (i,j), (j,i).
+                let da = 2.0 * r / (thr * thr);
+                for k in 0..3 {
+                    grad[i][k] += -2.0 * v[i] * v[j] / q * da * (moved[i][k] - moved[j][k]) / dm;
+                }
+            }
+        }
+        let score = q / n as f64;
+        (MultibodyValue { loss: -score.ln(), score, power_steps: steps }, grad)
+    }
+
+    fn max_abs(g: &[P64]) -> f64 {
+        g.iter().flatten().fold(0.0, |m: f64, x| m.max(x.abs()))
+    }
+
+    /// A cluster and a non-rigidly moved copy: rigid motion plus uniform noise of `noise_m`.
+    fn deformed_pair(n: usize, noise_m: f64, seed: u64) -> (Vec<P64>, Vec<P64>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let points = random_cluster(n, 1.5, &mut rng);
+        let motion = rigid([0.2, -0.4, 1.0], 0.3, [2.0, -1.0, 0.1]);
+        let moved = points
+            .iter()
+            .map(|p| {
+                let q = motion(p);
+                std::array::from_fn(|k| q[k] + noise_m * rng.random_range(-1.0..1.0))
+            })
+            .collect();
+        (points, moved)
+    }
+
+    #[test]
+    fn multibody_gradient_matches_finite_differences_of_the_converged_score() {
+        let (points, moved) = deformed_pair(15, 0.04, 11);
+        let thr = 0.1;
+        let (iters, tol, h) = (200, 1e-14, 1e-6);
+        // No pair may sit on the clamp of A or have coincident moved points within +-h.
+        for i in 0..15 {
+            for j in i + 1..15 {
+                let d = |c: &[P64]| (0..3).map(|k| (c[i][k] - c[j][k]).powi(2)).sum::<f64>().sqrt();
+                let raw = 1.0 - (d(&points) - d(&moved)).powi(2) / (thr * thr);
+                assert!(raw.abs() > 1e-3 && d(&moved) > 1e-3, "fixture pair ({i}, {j}) on a kink");
+            }
+        }
+        let (value, grad) = run64(&points, &moved, thr, iters, tol, 1.0);
+        assert!(value.power_steps < iters, "power iteration did not converge");
+        // The fixture is a real mixture: some pairs clamped, some partially kept.
+        assert!(value.score < 0.95 && value.score > 0.2, "score {}", value.score);
+        for i in 0..15 {
+            for k in 0..3 {
+                let (mut plus, mut minus) = (moved.clone(), moved.clone());
+                plus[i][k] += h;
+                minus[i][k] -= h;
+                let fd = (run64(&points, &plus, thr, iters, tol, 0.0).0.loss
+                    - run64(&points, &minus, thr, iters, tol, 0.0).0.loss)
+                    / (2.0 * h);
+                // Central differences: O(h^2) truncation and ~1e-16 / h rounding, both < 1e-9;
+                // gradients here are O(0.1..10).
+                assert!(
+                    (fd - grad[i][k]).abs() < 1e-7 * grad[i][k].abs().max(1.0),
+                    "({i},{k}) fd {fd} vs {}",
+                    grad[i][k]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn packed_parallel_loss_matches_the_dense_reference() {
+        // Odd n, not a multiple of the lane width, several chunks.
+        for (n, noise, iters, tol) in [(257, 0.05, 10, 1e-5), (64, 0.2, 200, 1e-13), (3, 0.05, 10, 1e-5)] {
+            let (points, moved) = deformed_pair(n, noise, n as u64);
+            let (fast, grad) = run64(&points, &moved, 0.1, iters, tol, 1.0);
+            let (slow, grad_ref) = dense_reference(&points, &moved, 0.1, iters, tol);
+            assert_eq!(fast.power_steps, slow.power_steps);
+            // Same f64 maths summed in another order: 1e-12 relative is ~1e4 ulps of slack.
+            assert!((fast.score - slow.score).abs() < 1e-12 * slow.score, "n {n}: {fast:?} vs {slow:?}");
+            let scale = max_abs(&grad_ref);
+            assert!(scale > 0.0);
+            for (a, b) in grad.iter().flatten().zip(grad_ref.iter().flatten()) {
+                assert!((a - b).abs() < 1e-10 * scale, "n {n}: {a} vs {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn f32_production_loss_agrees_with_the_f64_reference() {
+        let (points, moved) = deformed_pair(600, 0.08, 21);
+        let (slow, grad_ref) = dense_reference(&points, &moved, 0.1, 10, 1e-5);
+        let mut grad = vec![[0.0f32; 3]; 600];
+        let mut scratch = MultibodyScratch::new();
+        let fast = multibody_loss(&to_f32(&points), &to_f32(&moved), 0.1, 10, 2.0, &mut grad, &mut scratch).unwrap();
+        // f32 distances carry ~1e-6 m errors against a 0.1 m threshold, so entries of A differ by
+        // ~1e-5; the score averages them. The f32 stopping test may also end one step apart.
+        assert!((fast.score - slow.score).abs() < 1e-4 * slow.score, "{fast:?} vs {slow:?}");
+        let scale = max_abs(&grad_ref);
+        for (a, b) in grad.iter().flatten().zip(grad_ref.iter().flatten()) {
+            assert!((f64::from(*a) - 2.0 * b).abs() < 2e-3 * 2.0 * scale, "{a} vs {}", 2.0 * b);
+        }
+    }
+
+    #[test]
+    fn a_rigid_motion_scores_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(31);
+        let points = random_cluster(500, 2.0, &mut rng);
+        let motion = rigid([1.0, 2.0, -0.5], 1.1, [12.0, -5.0, 0.3]);
+        let moved: Vec<P64> = points.iter().map(&motion).collect();
+        let mut grad = vec![[0.0f32; 3]; 500];
+        let mut scratch = MultibodyScratch::new();
+        let v = multibody_loss(&to_f32(&points), &to_f32(&moved), 0.03, 10, 1.0, &mut grad, &mut scratch).unwrap();
+        // f32 rounding of ~15 m coordinates moves distances by ~1e-6 m: (1e-6 / 0.03)^2 ~ 1e-9.
+        assert!(v.loss.abs() < 1e-5 && (v.score - 1.0).abs() < 1e-5, "{v:?}");
+        assert!(v.power_steps <= 2, "A is all ones: v_0 is already the eigenvector ({v:?})");
+    }
+
+    #[test]
+    fn a_non_rigid_deformation_increases_the_loss() {
+        let mut last = run64(&deformed_pair(200, 0.0, 41).0, &deformed_pair(200, 0.0, 41).1, 0.1, 10, 1e-5, 1.0).0.loss;
+        assert!(last.abs() < 1e-12);
+        for noise in [0.01, 0.03, 0.06, 0.2] {
+            // Same seed: the same noise directions, scaled up.
+            let (points, moved) = deformed_pair(200, noise, 41);
+            let loss = run64(&points, &moved, 0.1, 10, 1e-5, 1.0).0.loss;
+            assert!(loss > last, "noise {noise}: {loss} <= {last}");
+            last = loss;
+        }
+    }
+
+    #[test]
+    fn clusters_of_two_or_fewer_points_are_skipped() {
+        let mut scratch = MultibodyScratch::new();
+        for n in 0..=2 {
+            let c = vec![[1.0f32, 2.0, 3.0]; n];
+            let mut grad = vec![[7.0f32; 3]; n];
+            assert_eq!(multibody_loss(&c, &c, 0.1, 10, 1.0, &mut grad, &mut scratch), None);
+            assert!(grad.iter().flatten().all(|&g| g == 7.0));
+        }
+    }
+
+    #[test]
+    fn coincident_moved_points_get_a_zero_gradient_and_a_finite_loss() {
+        let (points, _) = deformed_pair(20, 0.0, 51);
+        // Everything collapsed onto one point, and a cluster with duplicated points.
+        let collapsed = vec![[1.0, 1.0, 1.0]; 20];
+        let (v, grad) = run64(&points, &collapsed, 0.1, 10, 1e-5, 1.0);
+        assert!(v.loss.is_finite() && grad.iter().flatten().all(|&g| g == 0.0), "{v:?}");
+        let dup: Vec<P64> = points.iter().map(|p| [p[0].round(), p[1].round(), 0.0]).collect();
+        let (v, grad) = run64(&dup, &dup, 0.1, 10, 1e-5, 1.0);
+        assert!(v.loss.abs() < 1e-12 && grad.iter().flatten().all(|&g| g == 0.0), "{v:?}");
+    }
+
+    #[test]
+    fn zero_weight_leaves_the_gradient_untouched_and_scratch_reuse_is_clean() {
+        let (points, moved) = deformed_pair(300, 0.05, 61);
+        let (p32, m32) = (to_f32(&points), to_f32(&moved));
+        let mut scratch = MultibodyScratch::new();
+        let mut fresh = vec![[0.0f32; 3]; 300];
+        let first = multibody_loss(&p32, &m32, 0.1, 10, 1.0, &mut fresh, &mut scratch).unwrap();
+        let mut untouched = vec![[3.0f32; 3]; 300];
+        let zero = multibody_loss(&p32, &m32, 0.1, 10, 0.0, &mut untouched, &mut scratch).unwrap();
+        assert_eq!(first, zero);
+        assert!(untouched.iter().flatten().all(|&g| g == 3.0));
+        // A smaller cluster in between must not leave stale state behind.
+        let mut small = vec![[0.0f32; 3]; 50];
+        multibody_loss(&p32[..50], &m32[..50], 0.1, 10, 1.0, &mut small, &mut scratch).unwrap();
+        let mut again = vec![[0.0f32; 3]; 300];
+        let second = multibody_loss(&p32, &m32, 0.1, 10, 1.0, &mut again, &mut scratch).unwrap();
+        assert_eq!((first, &fresh), (second, &again));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+        #[test]
+        fn the_loss_is_unchanged_by_a_rigid_motion_of_both_clouds(
+            seed in any::<u64>(),
+            n in 3usize..40,
+            axis in prop::array::uniform3(-1.0f64..1.0),
+            angle in -3.1f64..3.1,
+            t in prop::array::uniform3(-50.0f64..50.0),
+        ) {
+            prop_assume!(axis.iter().map(|a| a * a).sum::<f64>() > 1e-3);
+            let (points, moved) = deformed_pair(n, 0.05, seed);
+            let motion = rigid(axis, angle, t);
+            let rotation = rigid(axis, angle, [0.0; 3]);
+            let (v, grad) = run64(&points, &moved, 0.1, 10, 1e-5, 1.0);
+            let p2: Vec<P64> = points.iter().map(&motion).collect();
+            let m2: Vec<P64> = moved.iter().map(&motion).collect();
+            let (v2, grad2) = run64(&p2, &m2, 0.1, 10, 1e-5, 1.0);
+            // Distances change by rounding only (~1e-14 m at 50 m); a different stopping step is
+            // possible only at the tolerance edge, which these margins would also expose.
+            prop_assert!((v.loss - v2.loss).abs() < 1e-9, "{:?} vs {:?}", v, v2);
+            // The gradient rotates with the clouds.
+            let scale = max_abs(&grad).max(1e-12);
+            for (g, g2) in grad.iter().zip(&grad2) {
+                let rg = rotation(g);
+                for k in 0..3 {
+                    prop_assert!((rg[k] - g2[k]).abs() < 1e-6 * scale, "{:?} vs {:?}", rg, g2);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn subsample_keeps_small_clusters_whole() {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut out = vec![99];
+        subsample_indices(5, 5, &mut rng, &mut out);
+        assert_eq!(out, vec![0, 1, 2, 3, 4]);
+        subsample_indices(0, 3, &mut rng, &mut out);
+        assert!(out.is_empty());
+    }
+
+    #[test]
+    fn subsample_draws_distinct_sorted_indices_uniformly_and_deterministically() {
+        let draw = |seed| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let mut out = Vec::new();
+            subsample_indices(10_000, 3000, &mut rng, &mut out);
+            out
+        };
+        let a = draw(7);
+        assert_eq!(a.len(), 3000);
+        assert!(a.windows(2).all(|w| w[0] < w[1]) && a[2999] < 10_000, "sorted, distinct, in range");
+        assert_eq!(a, draw(7));
+        assert_ne!(a, draw(8));
+
+        // Uniformity: 20 000 draws of 10 of 20 indices; each index is picked with probability
+        // 1/2, so its count is 10 000 +- 71 (1 sigma); 5 sigma is 355.
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let mut counts = [0u32; 20];
+        let mut out = Vec::new();
+        for _ in 0..20_000 {
+            subsample_indices(20, 10, &mut rng, &mut out);
+            for &i in &out {
+                counts[i as usize] += 1;
+            }
+        }
+        assert!(counts.iter().all(|&c| c.abs_diff(10_000) < 355), "{counts:?}");
+    }
+}
