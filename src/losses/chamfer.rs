@@ -9,7 +9,8 @@
 //! the nearest *moved* point of each target point, and X changes every iteration. Only
 //! neighbours closer than `sqrt(trunc)` matter (anything farther contributes 0), so a hash grid
 //! over X with cells a fraction of that radius, searched ring by ring until no closer point can
-//! exist, is exact for the truncated loss and is rebuilt in about a millisecond for 50k points.
+//! exist, is exact for the truncated loss and allocation-free once warm (build 1.5-3 ms for 48k
+//! KITTI points; its queries cost about what k-d tree queries cost at this 1.41 m radius).
 
 use num_traits::Float;
 use rayon::prelude::*;
@@ -47,7 +48,7 @@ impl ChamferScratch {
 ///
 /// Pass one when a k-d tree over exactly the `moved` slice already exists (e.g. the same moved
 /// cloud is compared with several targets); otherwise pass `None` and the loss builds its own
-/// hash grid, which is cheaper than building a tree.
+/// hash grid in scratch (no allocation once warm; about as fast as building and querying a tree).
 pub struct ReverseSearch<'a> {
     tree: &'a KdTree,
 }
