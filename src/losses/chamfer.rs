@@ -9,7 +9,8 @@
 //! the nearest *moved* point of each target point, and X changes every iteration. Only
 //! neighbours closer than `sqrt(trunc)` matter (anything farther contributes 0), so a hash grid
 //! over X with cells a fraction of that radius, searched ring by ring until no closer point can
-//! exist, is exact for the truncated loss and is rebuilt in about a millisecond for 50k points.
+//! exist, is exact for the truncated loss and allocation-free once warm (build 1.5-3 ms for 48k
+//! KITTI points; its queries cost about what k-d tree queries cost at this 1.41 m radius).
 
 use num_traits::Float;
 use rayon::prelude::*;
@@ -21,7 +22,8 @@ use crate::geometry::knn::{KdTree, dist2};
 const NO_MATCH: u32 = u32::MAX;
 
 /// Grid cells per truncation radius: the search covers at most `(2k+1)^3` cells and stops early
-/// once the rings left cannot hold a closer point. Measured on KITTI (benches/chamfer.rs).
+/// once the rings left cannot hold a closer point. On KITTI frame pairs (48k points, radius
+/// 1.41 m) k = 2 ran the queries about twice as fast as k = 1, 4 or 6 (single thread).
 const CELLS_PER_RADIUS: i64 = 2;
 
 /// Reusable buffers for [`truncated_chamfer`]: one per fitting thread, kept across iterations so
@@ -46,7 +48,7 @@ impl ChamferScratch {
 ///
 /// Pass one when a k-d tree over exactly the `moved` slice already exists (e.g. the same moved
 /// cloud is compared with several targets); otherwise pass `None` and the loss builds its own
-/// hash grid, which is cheaper than building a tree.
+/// hash grid in scratch (no allocation once warm; about as fast as building and querying a tree).
 pub struct ReverseSearch<'a> {
     tree: &'a KdTree,
 }
