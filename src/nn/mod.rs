@@ -3,8 +3,11 @@
 //! The trajectory network (N × 9 → 128 × 8 → 3(T-1)) and the NSFP flow networks are plain
 //! multi-layer perceptrons: Linear, ReLU, ..., Linear. Their cost is almost entirely the
 //! N × 128 × 128 matrix products, so every product goes through [`gemm`](::gemm) (strided,
-//! no transposed copies) and the element-wise work (bias + ReLU, ReLU mask, bias gradients) is one
-//! cache-friendly pass each, split over rayon's pool for large batches.
+//! no transposed copies; its AVX-512 kernels are chosen at run time where the CPU has them). Rows
+//! are processed in fixed blocks spread over rayon's pool: each block's product is followed at once
+//! by its element-wise epilogue (bias + ReLU forward; ReLU mask + bias-gradient partial sums
+//! backward) while it is in cache, and weight gradients are summed over fixed row chunks. Fixed
+//! blocks make results independent of the thread count.
 //!
 //! Everything is generic over [`Scalar`] (`f32` in production, `f64` for finite-difference tests).
 //!
