@@ -16,7 +16,7 @@ fn record(chunk: &[u8]) -> [f32; 4] {
 /// Errors: a length that is not a multiple of 16 bytes, a non-finite coordinate. Zero bytes are
 /// an empty cloud. Cost: O(N).
 pub fn read_kitti_bin(bytes: &[u8]) -> Result<Vec<Point>, ReadError> {
-    if bytes.len() % RECORD_BYTES != 0 {
+    if !bytes.len().is_multiple_of(RECORD_BYTES) {
         return Err(ReadError::Data {
             format: Format::KittiBin,
             message: format!(
@@ -36,7 +36,7 @@ pub fn read_kitti_bin(bytes: &[u8]) -> Result<Vec<Point>, ReadError> {
 /// Whether headerless `bytes` are plausibly KITTI: whole records, every float finite and every
 /// coordinate within `max_abs_m` of the sensor. Used to guess the format when nothing else does.
 pub(crate) fn looks_like_kitti(bytes: &[u8], max_abs_m: f32) -> bool {
-    bytes.len() % RECORD_BYTES == 0
+    bytes.len().is_multiple_of(RECORD_BYTES)
         && bytes.chunks_exact(RECORD_BYTES).all(|c| {
             let r = record(c);
             r.iter().all(|v| v.is_finite()) && r[..3].iter().all(|v| v.abs() <= max_abs_m)

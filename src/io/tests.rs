@@ -152,7 +152,7 @@ fn npy_f64_n4(points: &[Point]) -> Vec<u8> {
 /// An `.npy` with a hand-written header dict (for headers our writer never produces).
 fn npy_with_dict(dict: &str, data: &[u8]) -> Vec<u8> {
     let mut header = dict.to_owned();
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');
