@@ -26,4 +26,5 @@
 pub mod fit;
 pub mod geometry;
 pub mod metrics;
+pub mod store;
 pub mod trajectory;
