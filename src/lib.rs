@@ -25,6 +25,7 @@
 
 pub mod fit;
 pub mod geometry;
+pub mod io;
 pub mod jobs;
 pub mod metrics;
 pub mod store;

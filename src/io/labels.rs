@@ -1,0 +1,88 @@
+//! Label export: per-point flows of a sequence as `.npz` (NumPy) or, with the `av2` feature, as
+//! a zip of Feather v2 files in the ZeroFlow / SceneFlowZoo Argoverse 2 layout.
+
+use std::io::{Seek, Write};
+
+use super::WriteError;
+use super::npz::NpzWriter;
+use crate::geometry::Point;
+
+/// Writes flows and timestamps as an `.npz`: arrays `flow_000`, `flow_001`, ... (float32,
+/// shape (N_k, 3), metres, frame k's sensor coordinates, point order of frame k) and
+/// `timestamps` (float64, shape (T,), seconds), each as given (`timestamps_s` is typically one
+/// per frame of the sequence, so one more than the pair-wise flows). Names have at least three
+/// digits, more when there are over 1000 flows.
+pub fn write_labels_npz<W: Write + Seek>(w: W, flows: &[Vec<Point>], timestamps_s: &[f64]) -> Result<W, WriteError> {
+    let mut npz = NpzWriter::new(w);
+    for (k, flow) in flows.iter().enumerate() {
+        npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+    }
+    npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
+    npz.finish()
+}
+
+/// Writes one Feather v2 (uncompressed Arrow IPC file) per frame into a zip: `000000.feather`,
+/// `000001.feather`, ..., each with columns `flow_tx_m`, `flow_ty_m`, `flow_tz_m` (float32,
+/// metres) and `is_valid` (bool; all true when `valid` is `None`), one row per point of frame
+/// k in its point order. This is the per-frame flow layout ZeroFlow / SceneFlowZoo read for
+/// Argoverse 2.
+///
+/// Errors: `valid` with a different number of frames, or of points in a frame, than `flows`.
+#[cfg(feature = "av2")]
+pub fn write_labels_av2_zip<W: Write + Seek>(
+    w: W,
+    flows: &[Vec<Point>],
+    valid: Option<&[Vec<bool>]>,
+) -> Result<W, WriteError> {
+    use std::sync::Arc;
+
+    use arrow_array::{ArrayRef, BooleanArray, Float32Array, RecordBatch};
+    use arrow_schema::{DataType, Field, Schema};
+    use zip::write::SimpleFileOptions;
+
+    if let Some(v) = valid {
+        if v.len() != flows.len() {
+            return Err(WriteError::Inconsistent(format!(
+                "{} validity masks for {} flow frames",
+                v.len(),
+                flows.len()
+            )));
+        }
+        if let Some(k) = (0..flows.len()).find(|&k| v[k].len() != flows[k].len()) {
+            return Err(WriteError::Inconsistent(format!(
+                "frame {k}: validity mask has {} entries for {} points",
+                v[k].len(),
+                flows[k].len()
+            )));
+        }
+    }
+    let schema = Arc::new(Schema::new(vec![
+        Field::new("flow_tx_m", DataType::Float32, false),
+        Field::new("flow_ty_m", DataType::Float32, false),
+        Field::new("flow_tz_m", DataType::Float32, false),
+        Field::new("is_valid", DataType::Boolean, false),
+    ]));
+    let mut zip = zip::ZipWriter::new(w);
+    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated).large_file(true);
+    let mut buf = Vec::new();
+    for (k, flow) in flows.iter().enumerate() {
+        let column =
+            |axis: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(flow.iter().map(|f| f[axis]))) };
+        let is_valid: BooleanArray = match valid {
+            Some(v) => v[k].iter().map(|&b| Some(b)).collect(),
+            None => std::iter::repeat_n(Some(true), flow.len()).collect(),
+        };
+        let batch = RecordBatch::try_new(
+            schema.clone(),
+            vec![column(0), column(1), column(2), Arc::new(is_valid) as ArrayRef],
+        )?;
+        buf.clear();
+        let mut writer = arrow_ipc::writer::FileWriter::try_new(&mut buf, &schema)?;
+        writer.write(&batch)?;
+        writer.finish()?;
+        drop(writer);
+        zip.start_file(format!("{k:06}.feather"), options)?;
+        zip.write_all(&buf)?;
+    }
+    Ok(zip.finish()?)
+}
