@@ -23,8 +23,10 @@
 //! runs a fit itself.
 #![warn(missing_docs)]
 
+pub mod cli;
 pub mod fit;
 pub mod geometry;
+pub mod http;
 pub mod io;
 pub mod jobs;
 pub mod metrics;
