@@ -228,8 +228,9 @@ async fn require_token(State(state): State<AppState>, request: Request, next: Ne
     Ok(next.run(request).await)
 }
 
-async fn fallback() -> ApiError {
-    ApiError::NotFound { what: "route", id: String::new() }
+/// Unknown paths: a plain 404 that [`error::problem_json`] turns into a problem.
+async fn fallback() -> (axum::http::StatusCode, &'static str) {
+    (axum::http::StatusCode::NOT_FOUND, "no such route")
 }
 
 /// The router over `state`: every route of [`ROUTES`], `/v1` behind the token, the body

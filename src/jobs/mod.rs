@@ -91,7 +91,8 @@ impl FitStats {
 
     /// Iterations per second summed over the fits running now (0 when idle).
     pub fn iterations_per_second(&self) -> f64 {
-        self.rates.lock().unwrap_or_else(|p| p.into_inner()).values().sum()
+        // fold from +0.0: `sum` of no floats is -0.0, which Prometheus would show as "-0".
+        self.rates.lock().unwrap_or_else(|p| p.into_inner()).values().fold(0.0, |a, b| a + b)
     }
 
     fn record(&self, job: Uuid, rate: f64) {
