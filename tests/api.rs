@@ -517,6 +517,13 @@ async fn a_job_interrupted_by_a_restart_runs_again_and_the_sequence_is_intact() 
     let running = s.wait_job(&job, Duration::from_secs(30), |j| j["progress"]["iteration"].as_u64() > Some(0)).await;
     assert_eq!(running["status"], "running");
     let dir = s.stop().await;
+    // The stop put the job back in the queue; make the database look as after a crash
+    // (kill -9 mid-fit: the row still says running), which the next start must recover.
+    let db = rusqlite::Connection::open(dir.join("mbnt.sqlite3")).unwrap();
+    let status: String = db.query_row("SELECT status FROM jobs WHERE id = ?1", [&job], |r| r.get(0)).unwrap();
+    assert_eq!(status, "queued");
+    assert_eq!(db.execute("UPDATE jobs SET status = 'running' WHERE id = ?1", [&job]).unwrap(), 1);
+    drop(db);
 
     let s = TestServer::start_with(Options { dir: Some(dir.clone()), ..Options::default() }).await;
     let done = s.wait_status(&job, "succeeded").await;
@@ -624,4 +631,28 @@ async fn the_api_examples_replay() {
             vars.insert(var.clone(), value.to_string());
         }
     }
+}
+
+#[tokio::test]
+async fn shutdown_ends_open_event_streams_and_requeues_the_running_job() {
+    let s = TestServer::start_with(slow(100_000, 5)).await;
+    let seq = s.upload(&frames(2, 30), None).await;
+    let job = s.submit(&seq, "ntp").await;
+    s.wait_status(&job, "running").await;
+    let events = s.request(Method::GET, &format!("/v1/jobs/{job}/events")).send().await.unwrap();
+    assert_eq!(events.status(), 200);
+    // A graceful shutdown must not wait for the stream's client to hang up.
+    let dir = tokio::time::timeout(Duration::from_secs(20), s.stop()).await.expect("shutdown completes");
+    let s = TestServer::start_with(Options {
+        dir: Some(dir.clone()),
+        fitter: Arc::new(SlowFitter { steps: 100_000, step: Duration::from_millis(5) }),
+        workers: 1,
+        ..Options::default()
+    })
+    .await;
+    let (_, j) = s.get("/v1/jobs/{id}", &format!("/v1/jobs/{job}")).await;
+    assert!(j["status"] == "queued" || j["status"] == "running", "{j}");
+    drop(events);
+    s.stop().await;
+    let _ = std::fs::remove_dir_all(dir);
 }
