@@ -26,9 +26,12 @@
 pub mod cli;
 pub mod fit;
 pub mod geometry;
+pub mod http;
 pub mod io;
+pub mod jobs;
 pub mod losses;
 pub mod metrics;
 pub mod nn;
 pub mod sim;
+pub mod store;
 pub mod trajectory;

@@ -1,7 +1,7 @@
 //! The `mbnt` binary: a thin dispatcher over the library's command front ends.
 
 use clap::{Parser, Subcommand};
-use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, simulate_cmd};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, serve_cmd, simulate_cmd};
 
 /// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
 #[derive(Debug, Parser)]
@@ -13,6 +13,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run the HTTP service (uploads, fit jobs, queries, label export).
+    Serve(serve_cmd::ServeArgs),
     /// Fit a method to frame files and write trajectories and scene-flow labels (.npz).
     Fit(fit_cmd::FitArgs),
     /// Write a synthetic LiDAR sequence with exact ground truth.
@@ -25,10 +27,13 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=info".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Serve(args) => serve_cmd::run(args),
         Command::Fit(args) => fit_cmd::run(args),
         Command::Simulate(args) => simulate_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),

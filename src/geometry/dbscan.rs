@@ -160,9 +160,10 @@ pub fn dbscan_brute_force(points: &[Point], eps_m: f32, min_points: usize) -> Ve
     }
     for i in 0..n {
         if !core[i]
-            && let Some(&j) = neighbours[i].iter().filter(|&&j| core[j]).min() {
-                component[i] = component[j];
-            }
+            && let Some(&j) = neighbours[i].iter().filter(|&&j| core[j]).min()
+        {
+            component[i] = component[j];
+        }
     }
     // Renumber by smallest member index, borders included.
     let mut relabel = vec![NOISE; n_components];

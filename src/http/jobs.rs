@@ -1,0 +1,505 @@
+//! `/v1/jobs`: submitting fits, their state and live progress, cancelling, querying a
+//! fitted model, and exporting scene-flow labels.
+
+use std::convert::Infallible;
+use std::time::Duration;
+
+use axum::Json;
+use axum::body::{Body, Bytes};
+use axum::extract::{Path as UrlPath, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use futures_util::Stream;
+use serde::{Deserialize, Serialize};
+use uuid::Uuid;
+
+use super::error::parse_json;
+use super::sequences::is_json;
+use super::{ApiError, AppState, parse_id};
+use crate::fit::{FitParams, Method};
+use crate::geometry::Point;
+use crate::jobs::JobQueue;
+use crate::store::{CancelOutcome, JobFilter, JobProgress, JobRecord, JobStatus, rfc3339};
+use crate::trajectory::QueryError;
+
+/// A job as the API shows it.
+#[derive(Debug, Serialize, PartialEq)]
+pub struct JobView {
+    id: String,
+    sequence_id: String,
+    method: &'static str,
+    params: crate::fit::ValidFitParams,
+    status: JobStatus,
+    progress: JobProgress,
+    error: Option<String>,
+    cancel_requested: bool,
+    attempts: u32,
+    created_at: String,
+    started_at: Option<String>,
+    finished_at: Option<String>,
+}
+
+impl From<&JobRecord> for JobView {
+    fn from(j: &JobRecord) -> Self {
+        Self {
+            id: j.id.to_string(),
+            sequence_id: j.sequence_id.to_string(),
+            method: j.method.name(),
+            params: j.params.clone(),
+            status: j.status,
+            progress: j.progress.clone(),
+            error: j.error.clone(),
+            cancel_requested: j.cancel_requested,
+            attempts: j.attempts,
+            created_at: rfc3339(j.created_at_ms),
+            started_at: j.started_at_ms.map(rfc3339),
+            finished_at: j.finished_at_ms.map(rfc3339),
+        }
+    }
+}
+
+/// Reads a JSON body of a non-upload route (content type checked, size capped).
+async fn json_body<T: serde::de::DeserializeOwned>(state: &AppState, request: Request) -> Result<T, ApiError> {
+    let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    if !is_json(&content_type.to_ascii_lowercase()) {
+        return Err(ApiError::UnsupportedMediaType(format!(
+            "content type {:?}: send application/json",
+            if content_type.is_empty() { "(none)" } else { content_type }
+        )));
+    }
+    let limit = state.limits().max_json_bytes;
+    let bytes = axum::body::to_bytes(request.into_body(), limit).await.map_err(|e| {
+        let limited = std::error::Error::source(&e).is_some_and(|s| s.is::<http_body_util::LengthLimitError>());
+        if limited || e.to_string().contains("length limit") {
+            ApiError::TooLarge(format!("the JSON body exceeds {limit} bytes (server option --max-json-bytes)"))
+        } else {
+            ApiError::BadRequest(format!("could not read the body: {e}"))
+        }
+    })?;
+    parse_json(&bytes)
+}
+
+/// Body of `POST /v1/jobs`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CreateJob {
+    sequence_id: String,
+    method: Option<String>,
+    #[serde(default)]
+    params: Option<serde_json::Value>,
+}
+
+/// `POST /v1/jobs`: 202 with the queued job and its `Location`.
+pub async fn create(State(state): State<AppState>, request: Request) -> Result<Response, ApiError> {
+    let body: CreateJob = json_body(&state, request).await?;
+    let method = match body.method.as_deref() {
+        None => Method::default(),
+        Some(m) => m.parse::<Method>().map_err(|e| ApiError::invalid("method", e))?,
+    };
+    let params: FitParams = match body.params {
+        None | Some(serde_json::Value::Null) => FitParams::default(),
+        Some(value) => serde_json::from_value(value).map_err(|e| {
+            let message = e.to_string();
+            let name = message
+                .split("unknown field `")
+                .nth(1)
+                .and_then(|r| r.split('`').next())
+                .map(|n| format!("params.{n}"))
+                .unwrap_or_else(|| "params".to_string());
+            ApiError::invalid(name, format!("params: {message}"))
+        })?,
+    };
+    let params = params.check(method).map_err(|e| ApiError::invalid(format!("params.{}", e.name), e.to_string()))?;
+    let max = state.limits().max_iterations;
+    if params.iterations > max {
+        return Err(ApiError::LimitExceeded {
+            limit: "max_iterations",
+            detail: format!("params.iterations is {}; this server allows at most {max}", params.iterations),
+        });
+    }
+    let sequence_id = Uuid::parse_str(&body.sequence_id)
+        .map_err(|_| ApiError::invalid("sequence_id", format!("no sequence with id {:?}", body.sequence_id)))?;
+    let job = JobQueue::new_job(sequence_id, method, params);
+    let queue = state.inner.queue.clone();
+    let stored = job.clone();
+    tokio::task::spawn_blocking(move || queue.submit(&stored)).await?.map_err(|e| match e {
+        crate::store::StoreError::Missing(_) => {
+            ApiError::invalid("sequence_id", format!("no sequence with id {:?}", body.sequence_id))
+        }
+        other => other.into(),
+    })?;
+    let location = format!("/v1/jobs/{}", job.id);
+    Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(JobView::from(&job))).into_response())
+}
+
+/// Query string of `GET /v1/jobs`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ListQuery {
+    status: Option<String>,
+    sequence_id: Option<String>,
+    limit: Option<usize>,
+}
+
+/// `GET /v1/jobs?status=&sequence_id=&limit=`.
+pub async fn list(
+    State(state): State<AppState>,
+    query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let Query(query) = query.map_err(|e| ApiError::Invalid { parameter: None, detail: e.body_text() })?;
+    let status =
+        query.status.map(|s| s.parse::<JobStatus>()).transpose().map_err(|e| ApiError::invalid("status", e))?;
+    let sequence_id = query
+        .sequence_id
+        .map(|s| Uuid::parse_str(&s))
+        .transpose()
+        .map_err(|e| ApiError::invalid("sequence_id", format!("not a sequence id: {e}")))?;
+    let filter = JobFilter { status, sequence_id, limit: query.limit.unwrap_or(100).clamp(1, 1000) };
+    let jobs = state.blocking(move |s| Ok(s.list_jobs(&filter)?)).await?;
+    let views: Vec<JobView> = jobs.iter().map(JobView::from).collect();
+    Ok(Json(serde_json::json!({ "jobs": views })))
+}
+
+async fn load_job(state: &AppState, id: &str) -> Result<JobRecord, ApiError> {
+    let uuid = parse_id("job", id)?;
+    state
+        .blocking(move |s| Ok(s.get_job(uuid)?))
+        .await?
+        .ok_or_else(|| ApiError::NotFound { what: "job", id: id.to_string() })
+}
+
+/// `GET /v1/jobs/{id}`.
+pub async fn show(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Json<JobView>, ApiError> {
+    Ok(Json(JobView::from(&load_job(&state, &id).await?)))
+}
+
+/// `POST /v1/jobs/{id}/cancel`: 202 with the job (cancelled, or flagged while its fit stops).
+pub async fn cancel(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let uuid = parse_id("job", &id)?;
+    let queue = state.inner.queue.clone();
+    match tokio::task::spawn_blocking(move || queue.cancel(uuid)).await?? {
+        CancelOutcome::Accepted(job) => Ok((StatusCode::ACCEPTED, Json(JobView::from(&job))).into_response()),
+        CancelOutcome::NotFound => Err(ApiError::NotFound { what: "job", id }),
+        CancelOutcome::AlreadyFinished(job) => {
+            Err(ApiError::Conflict(format!("the job has already {}", job.status.as_str())))
+        }
+    }
+}
+
+/// How often a progress stream re-reads the store (for fits run by another process).
+const EVENTS_POLL: Duration = Duration::from_secs(2);
+
+/// `GET /v1/jobs/{id}/events`: server-sent events, `progress` with the job on every change,
+/// then `end` with the job once it is succeeded, failed or cancelled.
+pub async fn events(
+    State(state): State<AppState>,
+    UrlPath(id): UrlPath<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let uuid = parse_id("job", &id)?;
+    // Subscribe before reading, so that no report in between is missed.
+    let rx = state.inner.queue.subscribe(uuid);
+    let first = load_job(&state, &id).await?;
+    struct Feed {
+        state: AppState,
+        id: Uuid,
+        rx: tokio::sync::watch::Receiver<Option<JobRecord>>,
+        shutdown: tokio::sync::watch::Receiver<bool>,
+        next: Option<JobRecord>,
+        last: Option<JobView>,
+        done: bool,
+    }
+    let shutdown = state.inner.shutdown.clone();
+    let feed = Feed { state, id: uuid, rx, shutdown, next: Some(first), last: None, done: false };
+    let stream = futures_util::stream::unfold(feed, |mut feed| async move {
+        loop {
+            if feed.done {
+                return None;
+            }
+            if let Some(job) = feed.next.take() {
+                let view = JobView::from(&job);
+                if feed.last.as_ref() == Some(&view) {
+                    continue;
+                }
+                let terminal = job.status.is_terminal();
+                let event = Event::default()
+                    .event(if terminal { "end" } else { "progress" })
+                    .json_data(&view)
+                    .unwrap_or_else(|_| Event::default().event("error"));
+                feed.last = Some(view);
+                feed.done = terminal;
+                return Some((Ok(event), feed));
+            }
+            let reread = tokio::select! {
+                changed = feed.rx.changed() => match changed {
+                    Ok(()) => {
+                        feed.next = feed.rx.borrow_and_update().clone();
+                        false
+                    }
+                    // The watcher ended (its job reached a terminal state): the store has it.
+                    Err(_) => {
+                        feed.rx = feed.state.inner.queue.subscribe(feed.id);
+                        true
+                    }
+                },
+                // Fits run by another process sharing the store only show in the store.
+                () = tokio::time::sleep(EVENTS_POLL) => true,
+                _ = feed.shutdown.wait_for(|s| *s) => return None,
+            };
+            if reread {
+                let id = feed.id;
+                match feed.state.blocking(move |s| Ok(s.get_job(id)?)).await {
+                    Ok(Some(job)) => feed.next = Some(job),
+                    // Deleted with its sequence, or the store failed: end the stream.
+                    _ => return None,
+                }
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// Body of `POST /v1/jobs/{id}/query`: either a frame's points or arbitrary points.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct QueryBody {
+    frame: Option<usize>,
+    indices: Option<Vec<usize>>,
+    points: Option<Vec<[f64; 3]>>,
+    t: Option<f64>,
+    times: Vec<f64>,
+}
+
+/// `{"positions": [[[x, y, z] per time] per point]}` written straight from the flat answer.
+struct Positions<'a> {
+    flat: &'a [Point],
+    times: usize,
+}
+
+impl Serialize for Positions<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        struct Rows<'a>(&'a [Point], usize);
+        impl Serialize for Rows<'_> {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.collect_seq(self.0.chunks(self.1.max(1)))
+            }
+        }
+        let mut map = s.serialize_map(Some(1))?;
+        map.serialize_entry("positions", &Rows(self.flat, self.times))?;
+        map.end()
+    }
+}
+
+/// `POST /v1/jobs/{id}/query`: positions of points at the given times (succeeded jobs only).
+pub async fn query(
+    State(state): State<AppState>,
+    UrlPath(id): UrlPath<String>,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let job = load_job(&state, &id).await?;
+    let body: QueryBody = json_body(&state, request).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::Conflict(format!(
+            "the job is {}; only a succeeded job can be queried",
+            job.status.as_str()
+        )));
+    }
+    let limits = state.limits().clone();
+    if body.times.is_empty() {
+        return Err(ApiError::invalid("times", "give at least one time"));
+    }
+    if body.times.len() > limits.max_query_times {
+        return Err(ApiError::LimitExceeded {
+            limit: "max_query_times",
+            detail: format!("{} times; at most {} per query", body.times.len(), limits.max_query_times),
+        });
+    }
+    let check_points = |n: usize| -> Result<(), ApiError> {
+        if n > limits.max_query_points {
+            return Err(ApiError::LimitExceeded {
+                limit: "max_query_points",
+                detail: format!("{n} points; at most {} per query", limits.max_query_points),
+            });
+        }
+        if n.saturating_mul(body.times.len()) > limits.max_query_positions {
+            return Err(ApiError::LimitExceeded {
+                limit: "max_query_positions",
+                detail: format!(
+                    "{n} points x {} times; at most {} positions per query",
+                    body.times.len(),
+                    limits.max_query_positions
+                ),
+            });
+        }
+        Ok(())
+    };
+    let model = state.model(job.id).await?;
+    let (points, t_obs) = match (body.frame, body.points) {
+        (Some(k), None) => {
+            if body.t.is_some() {
+                return Err(ApiError::invalid(
+                    "t",
+                    "`t` goes with `points`; a frame's points are observed at its time",
+                ));
+            }
+            let frames = model.time_axis().frames();
+            if k >= frames {
+                return Err(ApiError::invalid(
+                    "frame",
+                    format!("frame {k} does not exist (the sequence has {frames})"),
+                ));
+            }
+            if let Some(indices) = &body.indices {
+                check_points(indices.len())?;
+            }
+            let sequence = job.sequence_id;
+            let frame = state.blocking(move |s| Ok(s.read_frame(sequence, k)?)).await?;
+            let points = match body.indices {
+                None => {
+                    check_points(frame.len())?;
+                    frame
+                }
+                Some(indices) => {
+                    if let Some(bad) = indices.iter().find(|&&i| i >= frame.len()) {
+                        return Err(ApiError::invalid(
+                            "indices",
+                            format!("index {bad} is out of range (frame {k} has {} points)", frame.len()),
+                        ));
+                    }
+                    indices.iter().map(|&i| frame[i]).collect()
+                }
+            };
+            (points, model.time_axis().frame_time(k))
+        }
+        (None, Some(points)) => {
+            if body.indices.is_some() {
+                return Err(ApiError::invalid("indices", "`indices` goes with `frame`"));
+            }
+            let t =
+                body.t.ok_or_else(|| ApiError::invalid("t", "give the time `t` at which the points were observed"))?;
+            check_points(points.len())?;
+            let points: Vec<Point> = points.iter().map(|p| [p[0] as f32, p[1] as f32, p[2] as f32]).collect();
+            (points, t)
+        }
+        _ => {
+            return Err(ApiError::invalid("frame", "give either `frame` (and optional `indices`) or `points` and `t`"));
+        }
+    };
+    let times = body.times;
+    let json = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+        let flat = model.positions(&points, t_obs, &times).map_err(|e| match e {
+            QueryError::NonFinitePoint { .. } => ApiError::invalid("points", e.to_string()),
+            QueryError::TimeOutOfRange { time, .. } if time == t_obs && !times.contains(&time) => {
+                ApiError::invalid("t", e.to_string())
+            }
+            QueryError::TimeOutOfRange { .. } => ApiError::invalid("times", e.to_string()),
+        })?;
+        serde_json::to_vec(&Positions { flat: &flat, times: times.len() })
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("serialising positions: {e}")))
+    })
+    .await??;
+    Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], json).into_response())
+}
+
+/// Query string of `GET /v1/jobs/{id}/labels`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabelsQuery {
+    format: Option<String>,
+}
+
+/// `GET /v1/jobs/{id}/labels?format=npz|av2`: scene flow of every frame's points to the next.
+pub async fn labels(
+    State(state): State<AppState>,
+    UrlPath(id): UrlPath<String>,
+    query: Result<Query<LabelsQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(query) = query.map_err(|e| ApiError::Invalid { parameter: None, detail: e.body_text() })?;
+    let job = load_job(&state, &id).await?;
+    let format = query.format.unwrap_or_else(|| "npz".to_string());
+    if format != "npz" && format != "av2" {
+        return Err(ApiError::invalid("format", format!("unknown format {format:?} (expected npz or av2)")));
+    }
+    if format == "av2" && !cfg!(feature = "av2") {
+        return Err(ApiError::NotImplemented("this build has no av2 export (cargo feature `av2`)".into()));
+    }
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::Conflict(format!(
+            "the job is {}; labels exist only for a succeeded job",
+            job.status.as_str()
+        )));
+    }
+    let model = state.model(job.id).await?;
+    let tmp_dir = state.inner.tmp_dir.clone();
+    let as_npz = format == "npz";
+    let store = state.store();
+    // Build the archive in a temporary file (it can be large), then stream it.
+    let file = tokio::task::spawn_blocking(move || -> Result<std::fs::File, ApiError> {
+        let record = store
+            .get_sequence(job.sequence_id)?
+            .ok_or_else(|| ApiError::Conflict("the job's sequence has been deleted".into()))?;
+        let frames = (0..record.frames()).map(|k| store.read_frame(record.id, k)).collect::<Result<Vec<_>, _>>()?;
+        let flows = model.scene_flow(&frames);
+        drop(frames);
+        let path = tmp_dir.join(format!("{}.labels", Uuid::new_v4().simple()));
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .open(&path)
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("creating a labels file: {e}")))?;
+        // Unlinked at once: the open handle keeps the data until the response is sent.
+        let _ = std::fs::remove_file(&path);
+        let w = std::io::BufWriter::new(file);
+        let written = if as_npz {
+            let axis = model.time_axis();
+            let timestamps: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+            crate::io::labels::write_labels_npz(w, &flows, &timestamps)
+        } else {
+            write_av2(w, &flows)
+        };
+        let mut file = written
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing labels: {e}")))?
+            .into_inner()
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing labels: {}", e.error())))?;
+        std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(0))
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("rewinding labels: {e}")))?;
+        Ok(file)
+    })
+    .await??;
+    let len = file.metadata().map(|m| m.len()).ok();
+    let stream = futures_util::stream::unfold(tokio::fs::File::from_std(file), |mut f| async move {
+        use tokio::io::AsyncReadExt;
+        let mut buf = vec![0u8; 1 << 16];
+        match f.read(&mut buf).await {
+            Ok(0) => None,
+            Ok(n) => {
+                buf.truncate(n);
+                Some((Ok::<_, std::io::Error>(Bytes::from(buf)), f))
+            }
+            Err(e) => Some((Err(e), f)),
+        }
+    });
+    let (content_type, extension) =
+        if as_npz { ("application/octet-stream", "npz") } else { ("application/zip", "zip") };
+    let mut headers = HeaderMap::new();
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"labels-{id}.{extension}\"")) {
+        headers.insert(header::CONTENT_DISPOSITION, v);
+    }
+    if let Some(len) = len {
+        headers.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+    }
+    Ok((headers, Body::from_stream(stream)).into_response())
+}
+
+#[cfg(feature = "av2")]
+fn write_av2<W: std::io::Write + std::io::Seek>(w: W, flows: &[Vec<Point>]) -> Result<W, crate::io::WriteError> {
+    crate::io::labels::write_labels_av2_zip(w, flows, None)
+}
+
+#[cfg(not(feature = "av2"))]
+fn write_av2<W: std::io::Write + std::io::Seek>(_: W, _: &[Vec<Point>]) -> Result<W, crate::io::WriteError> {
+    Err(crate::io::WriteError::Io(std::io::Error::other("built without the av2 feature")))
+}

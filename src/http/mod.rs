@@ -1,0 +1,356 @@
+//! The HTTP service: axum routes over the store and the job queue, problem+json errors,
+//! bearer-token auth on `/v1`, body limits, server-sent progress, Prometheus metrics and the
+//! OpenAPI document.
+//!
+//! [`Service::start`] opens the store, re-queues jobs a dead process left running, starts
+//! the workers and binds the listener; [`Service::shutdown`] stops accepting, ends progress
+//! streams, lets requests finish and stops the workers (their jobs go back to the queue).
+
+pub mod error;
+mod jobs;
+pub mod metrics;
+mod sequences;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use anyhow::Context;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{HeaderValue, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{MethodRouter, delete, get, post};
+use axum::{Json, Router};
+use tokio::sync::watch;
+use uuid::Uuid;
+
+use crate::jobs::{Fitter, JobQueue, WorkerPool};
+use crate::store::{SqliteStore, Store};
+use crate::trajectory::FittedModel;
+pub use error::ApiError;
+
+/// The OpenAPI 3.1 document, served at `/openapi.yaml`.
+pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");
+
+/// Configurable limits; every one answers with a problem naming it when exceeded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Limits {
+    /// Largest request body, bytes (413 beyond; uploads included).
+    pub max_body_bytes: u64,
+    /// Largest JSON body of the non-upload routes (jobs, queries), bytes (413 beyond).
+    pub max_json_bytes: usize,
+    /// Most frames per sequence.
+    pub max_frames: usize,
+    /// Most points per frame.
+    pub max_points_per_frame: usize,
+    /// Most fit iterations a job may ask for.
+    pub max_iterations: usize,
+    /// Most points per query.
+    pub max_query_points: usize,
+    /// Most times per query.
+    pub max_query_times: usize,
+    /// Most positions (points x times) per query answer.
+    pub max_query_positions: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_body_bytes: 1 << 30,
+            max_json_bytes: 64 << 20,
+            max_frames: 300,
+            max_points_per_frame: 1_000_000,
+            max_iterations: crate::fit::MAX_ITERATIONS,
+            max_query_points: 100_000,
+            max_query_times: 1_000,
+            // ~30 bytes of JSON per position: answers stay below ~300 MB.
+            max_query_positions: 10_000_000,
+        }
+    }
+}
+
+/// Everything the service needs to start.
+#[derive(Debug, Clone)]
+pub struct ServiceConfig {
+    /// Address to listen on (port 0 picks a free one).
+    pub bind: SocketAddr,
+    /// Data directory (database, frames, models); created when absent.
+    pub data_dir: PathBuf,
+    /// Fits that may run at once.
+    pub workers: usize,
+    /// Threads of each fit.
+    pub threads_per_job: usize,
+    /// When set, every `/v1` route needs `Authorization: Bearer <token>`.
+    pub api_token: Option<String>,
+    /// Request limits.
+    pub limits: Limits,
+}
+
+/// One route: its method and path (as in `openapi.yaml`) and its handler.
+#[derive(Clone, Copy)]
+pub struct Route {
+    /// HTTP method, upper case.
+    pub method: &'static str,
+    /// Path template with `{param}` segments.
+    pub path: &'static str,
+    handler: fn() -> MethodRouter<AppState>,
+}
+
+impl std::fmt::Debug for Route {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} {}", self.method, self.path)
+    }
+}
+
+/// Every route of the service. The router is built from this table, and a test checks it
+/// against `openapi.yaml` in both directions.
+pub const ROUTES: &[Route] = &[
+    Route { method: "GET", path: "/healthz", handler: || get(healthz) },
+    Route { method: "GET", path: "/metrics", handler: || get(metrics::render) },
+    Route { method: "GET", path: "/openapi.yaml", handler: || get(openapi) },
+    Route { method: "POST", path: "/v1/sequences", handler: || post(sequences::create) },
+    Route { method: "GET", path: "/v1/sequences", handler: || get(sequences::list) },
+    Route { method: "GET", path: "/v1/sequences/{id}", handler: || get(sequences::show) },
+    Route { method: "DELETE", path: "/v1/sequences/{id}", handler: || delete(sequences::remove) },
+    Route { method: "POST", path: "/v1/jobs", handler: || post(jobs::create) },
+    Route { method: "GET", path: "/v1/jobs", handler: || get(jobs::list) },
+    Route { method: "GET", path: "/v1/jobs/{id}", handler: || get(jobs::show) },
+    Route { method: "POST", path: "/v1/jobs/{id}/cancel", handler: || post(jobs::cancel) },
+    Route { method: "GET", path: "/v1/jobs/{id}/events", handler: || get(jobs::events) },
+    Route { method: "POST", path: "/v1/jobs/{id}/query", handler: || post(jobs::query) },
+    Route { method: "GET", path: "/v1/jobs/{id}/labels", handler: || get(jobs::labels) },
+];
+
+/// Shared state of the handlers.
+#[derive(Clone)]
+pub struct AppState {
+    inner: Arc<StateInner>,
+}
+
+struct StateInner {
+    store: Arc<dyn Store>,
+    queue: Arc<JobQueue>,
+    limits: Limits,
+    api_token: Option<String>,
+    tmp_dir: PathBuf,
+    metrics: metrics::RequestMetrics,
+    /// Recently used models, most recent last (loading one parses the whole file).
+    models: Mutex<Vec<(Uuid, Arc<FittedModel>)>>,
+    /// Becomes true when the service stops: progress streams end.
+    shutdown: watch::Receiver<bool>,
+}
+
+/// Models kept in memory for queries.
+const MODEL_CACHE: usize = 4;
+
+impl AppState {
+    fn store(&self) -> Arc<dyn Store> {
+        self.inner.store.clone()
+    }
+
+    fn limits(&self) -> &Limits {
+        &self.inner.limits
+    }
+
+    /// Runs a blocking storage call off the executor.
+    async fn blocking<T: Send + 'static>(
+        &self,
+        f: impl FnOnce(&dyn Store) -> Result<T, ApiError> + Send + 'static,
+    ) -> Result<T, ApiError> {
+        let store = self.store();
+        tokio::task::spawn_blocking(move || f(&*store)).await?
+    }
+
+    /// The model of a succeeded job, from the cache or the store.
+    async fn model(&self, job: Uuid) -> Result<Arc<FittedModel>, ApiError> {
+        if let Some(m) = self.cached_model(job) {
+            return Ok(m);
+        }
+        let model = self
+            .blocking(move |s| {
+                let bytes = s.read_model(job)?;
+                FittedModel::from_bytes(&bytes).map_err(|e| ApiError::Internal(anyhow::anyhow!("model of {job}: {e}")))
+            })
+            .await?;
+        let model = Arc::new(model);
+        let mut cache = self.inner.models.lock().unwrap_or_else(|p| p.into_inner());
+        cache.retain(|(id, _)| *id != job);
+        if cache.len() >= MODEL_CACHE {
+            cache.remove(0);
+        }
+        cache.push((job, model.clone()));
+        Ok(model)
+    }
+
+    fn cached_model(&self, job: Uuid) -> Option<Arc<FittedModel>> {
+        let mut cache = self.inner.models.lock().unwrap_or_else(|p| p.into_inner());
+        let at = cache.iter().position(|(id, _)| *id == job)?;
+        let entry = cache.remove(at);
+        let model = entry.1.clone();
+        cache.push(entry);
+        Some(model)
+    }
+}
+
+/// Parses an id from the path; anything that is not a UUID names no resource (404).
+fn parse_id(what: &'static str, id: &str) -> Result<Uuid, ApiError> {
+    Uuid::parse_str(id).map_err(|_| ApiError::NotFound { what, id: id.to_string() })
+}
+
+async fn healthz(State(state): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
+    state.blocking(|s| s.ping().map_err(|e| ApiError::Unavailable(format!("storage does not answer: {e}")))).await?;
+    Ok(Json(serde_json::json!({ "status": "ok" })))
+}
+
+async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, HeaderValue::from_static("application/yaml"))], OPENAPI_YAML).into_response()
+}
+
+/// Compares without an early exit, so response timing does not reveal a token's prefix.
+fn tokens_match(given: &[u8], expected: &[u8]) -> bool {
+    given.len() == expected.len() && given.iter().zip(expected).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0
+}
+
+async fn require_token(State(state): State<AppState>, request: Request, next: Next) -> Result<Response, ApiError> {
+    if let Some(expected) = &state.inner.api_token {
+        let given = request
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(str::trim);
+        if !given.is_some_and(|g| tokens_match(g.as_bytes(), expected.as_bytes())) {
+            return Err(ApiError::Unauthorized);
+        }
+    }
+    Ok(next.run(request).await)
+}
+
+/// Unknown paths: a plain 404 that [`error::problem_json`] turns into a problem.
+async fn fallback() -> (axum::http::StatusCode, &'static str) {
+    (axum::http::StatusCode::NOT_FOUND, "no such route")
+}
+
+/// The router over `state`: every route of [`ROUTES`], `/v1` behind the token, the body
+/// limit, request metrics and problem+json for every error.
+pub fn router(state: AppState) -> Router {
+    let mut open = Router::new();
+    let mut v1 = Router::new();
+    for route in ROUTES {
+        if route.path.starts_with("/v1/") {
+            v1 = v1.route(route.path, (route.handler)());
+        } else {
+            open = open.route(route.path, (route.handler)());
+        }
+    }
+    let v1 = v1.route_layer(middleware::from_fn_with_state(state.clone(), require_token));
+    let limit = usize::try_from(state.limits().max_body_bytes).unwrap_or(usize::MAX);
+    open.merge(v1)
+        .fallback(fallback)
+        .layer(DefaultBodyLimit::disable())
+        .layer(tower_http::limit::RequestBodyLimitLayer::new(limit))
+        .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .layer(tower_http::catch_panic::CatchPanicLayer::new())
+        .layer(middleware::from_fn(error::problem_json))
+        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .with_state(state)
+}
+
+/// A running service.
+pub struct Service {
+    addr: SocketAddr,
+    stop: watch::Sender<bool>,
+    server: tokio::task::JoinHandle<std::io::Result<()>>,
+    workers: WorkerPool,
+}
+
+impl std::fmt::Debug for Service {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Service").field("addr", &self.addr).finish_non_exhaustive()
+    }
+}
+
+impl Service {
+    /// Opens the store, re-queues jobs left running by a dead process, starts the workers
+    /// (fitting with `fitter`) and starts serving on `config.bind`.
+    pub async fn start(config: ServiceConfig, fitter: Arc<dyn Fitter>) -> anyhow::Result<Self> {
+        let data_dir = config.data_dir.clone();
+        let store = tokio::task::spawn_blocking(move || -> anyhow::Result<SqliteStore> {
+            let store = SqliteStore::open(&data_dir)
+                .with_context(|| format!("opening the data directory {}", data_dir.display()))?;
+            let requeued = store.requeue_running_jobs().context("re-queueing interrupted jobs")?;
+            if requeued > 0 {
+                tracing::info!(requeued, "jobs interrupted by the last stop are queued again");
+            }
+            Ok(store)
+        })
+        .await??;
+        let tmp_dir = store.data_dir().tmp_dir();
+        let store: Arc<dyn Store> = Arc::new(store);
+        let queue = JobQueue::new(store.clone());
+        let workers = WorkerPool::start(queue.clone(), fitter, config.workers.max(1), config.threads_per_job.max(1))?;
+        let (stop, stopped) = watch::channel(false);
+        let state = AppState {
+            inner: Arc::new(StateInner {
+                store,
+                queue,
+                limits: config.limits.clone(),
+                api_token: config.api_token.clone().filter(|t| !t.is_empty()),
+                tmp_dir,
+                metrics: metrics::RequestMetrics::default(),
+                models: Mutex::default(),
+                shutdown: stopped.clone(),
+            }),
+        };
+        let listener = match tokio::net::TcpListener::bind(config.bind).await {
+            Ok(l) => l,
+            Err(e) => {
+                tokio::task::spawn_blocking(move || workers.shutdown()).await?;
+                return Err(e).with_context(|| format!("binding {}", config.bind));
+            }
+        };
+        let addr = listener.local_addr()?;
+        let app = router(state);
+        let mut signal = stopped;
+        let server = tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(async move {
+                    let _ = signal.wait_for(|s| *s).await;
+                })
+                .await
+        });
+        tracing::info!(%addr, "mbnt service listening");
+        Ok(Self { addr, stop, server, workers })
+    }
+
+    /// The address the service listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Stops the service: no new connections, progress streams end, requests in flight
+    /// finish, then running fits stop at their next iteration and go back to the queue.
+    pub async fn shutdown(self) -> anyhow::Result<()> {
+        let _ = self.stop.send(true);
+        let served = self.server.await;
+        let workers = self.workers;
+        tokio::task::spawn_blocking(move || workers.shutdown()).await?;
+        served?.context("serving")?;
+        tracing::info!("mbnt service stopped");
+        Ok(())
+    }
+
+    /// Serves until `signal` completes (or the server fails), then shuts down.
+    pub async fn run_until(mut self, signal: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
+        tokio::select! {
+            () = signal => self.shutdown().await,
+            served = &mut self.server => {
+                let workers = self.workers;
+                tokio::task::spawn_blocking(move || workers.shutdown()).await?;
+                served?.context("serving")?;
+                anyhow::bail!("the server stopped on its own")
+            }
+        }
+    }
+}

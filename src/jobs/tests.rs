@@ -1,0 +1,216 @@
+//! Queue and worker behaviour, driven step by step with `Worker::try_execute_next`.
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use super::*;
+use crate::fit::{FitParams, LossTerms};
+use crate::store::{JobFilter, SequenceMeta, SqliteStore};
+
+/// Reports `steps` slow iterations of its own (stopping on `Break`), then runs the real fit:
+/// a fit long enough to be cancelled or interrupted.
+struct SlowFitter {
+    steps: usize,
+    step: Duration,
+}
+
+impl Fitter for SlowFitter {
+    fn fit(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        for iteration in 1..=self.steps {
+            std::thread::sleep(self.step);
+            let p =
+                Progress { iteration, iterations: self.steps, loss: LossTerms::default(), best_validation_loss: None };
+            if on_progress(&p).is_break() {
+                return Err(FitError::Cancelled { iteration });
+            }
+        }
+        CoreFitter.fit(sequence, method, params, on_progress)
+    }
+}
+
+struct PanickingFitter;
+
+impl Fitter for PanickingFitter {
+    fn fit(
+        &self,
+        _: &Sequence,
+        _: Method,
+        _: &ValidFitParams,
+        _: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        panic!("a bug in the fit")
+    }
+}
+
+struct Fixture {
+    dir: std::path::PathBuf,
+    queue: Arc<JobQueue>,
+    sequence: Uuid,
+}
+
+impl Drop for Fixture {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// A store with one small sequence: two frames of a 10 x 10 x 2 grid, the second shifted.
+fn fixture() -> Fixture {
+    let dir = std::env::temp_dir().join(format!("mbnt-jobs-{}", Uuid::new_v4()));
+    let store = SqliteStore::open(&dir).unwrap();
+    let grid: Vec<[f32; 3]> =
+        (0..200).map(|i| [(i % 10) as f32 * 0.3, ((i / 10) % 10) as f32 * 0.3, (i / 100) as f32 * 0.5 + 1.0]).collect();
+    let mut sink = store.begin_sequence().unwrap();
+    sink.put_frame(&grid).unwrap();
+    sink.put_frame(&grid.iter().map(|p| [p[0] + 0.1, p[1], p[2]]).collect::<Vec<_>>()).unwrap();
+    let sequence = sink.commit(SequenceMeta::default()).unwrap().id;
+    Fixture { dir, queue: JobQueue::new(Arc::new(store)), sequence }
+}
+
+fn tiny_params(method: Method) -> ValidFitParams {
+    FitParams { iterations: Some(3), hidden_width: Some(16), hidden_layers: Some(2), ..FitParams::default() }
+        .check(method)
+        .unwrap()
+}
+
+fn worker(f: &Fixture, fitter: impl Fitter) -> (Worker, Arc<AtomicBool>) {
+    let shutdown = Arc::new(AtomicBool::new(false));
+    (Worker::new(f.queue.clone(), Arc::new(fitter), 1, shutdown.clone()).unwrap(), shutdown)
+}
+
+fn wait_until_running(queue: &JobQueue, id: Uuid) {
+    for _ in 0..1000 {
+        if queue.store().get_job(id).unwrap().unwrap().status == JobStatus::Running {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    panic!("job {id} never started");
+}
+
+#[test]
+fn a_submitted_job_runs_to_success_and_stores_a_loadable_model() {
+    let f = fixture();
+    let (w, _) = worker(&f, CoreFitter);
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    let done = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(done.id, job.id);
+    assert_eq!(done.status, JobStatus::Succeeded, "{:?}", done.error);
+    assert_eq!((done.progress.fraction, done.attempts), (1.0, 1));
+    assert!(done.started_at_ms.is_some() && done.finished_at_ms.is_some());
+    let model = FittedModel::from_bytes(&f.queue.store().read_model(job.id).unwrap()).unwrap();
+    assert_eq!(model.time_axis().frames(), 2);
+    assert!(f.queue.stats().iterations_total() > 0);
+    assert!(w.try_execute_next().unwrap().is_none(), "the queue is empty");
+}
+
+#[test]
+fn a_panicking_fit_fails_the_job_and_the_worker_goes_on() {
+    let f = fixture();
+    let (w, _) = worker(&f, PanickingFitter);
+    for _ in 0..2 {
+        f.queue.submit(&JobQueue::new_job(f.sequence, Method::Mbnt, tiny_params(Method::Mbnt))).unwrap();
+    }
+    for _ in 0..2 {
+        let done = w.try_execute_next().unwrap().unwrap();
+        assert_eq!(done.status, JobStatus::Failed);
+        assert!(done.error.unwrap().contains("internal error"));
+    }
+}
+
+#[test]
+fn cancelling_a_running_job_stops_its_fit() {
+    let f = fixture();
+    let (w, _) = worker(&f, SlowFitter { steps: 100_000, step: Duration::from_millis(1) });
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    let mut events = f.queue.subscribe(job.id);
+    std::thread::scope(|s| {
+        let run = s.spawn(|| w.try_execute_next());
+        wait_until_running(&f.queue, job.id);
+        let CancelOutcome::Accepted(flagged) = f.queue.cancel(job.id).unwrap() else { panic!("not accepted") };
+        assert!(flagged.cancel_requested);
+        let done = run.join().unwrap().unwrap().unwrap();
+        assert_eq!(done.status, JobStatus::Cancelled);
+        assert!(done.progress.iteration < 100_000);
+    });
+    // The watcher's last state is the terminal one.
+    assert!(events.has_changed().unwrap_or(true));
+    assert_eq!(events.borrow_and_update().as_ref().unwrap().status, JobStatus::Cancelled);
+}
+
+#[test]
+fn a_shutdown_puts_the_running_job_back_in_the_queue_and_it_runs_again() {
+    let f = fixture();
+    let (w, shutdown) = worker(&f, SlowFitter { steps: 100_000, step: Duration::from_millis(1) });
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    std::thread::scope(|s| {
+        let run = s.spawn(|| w.try_execute_next());
+        wait_until_running(&f.queue, job.id);
+        shutdown.store(true, Ordering::Relaxed);
+        let stopped = run.join().unwrap().unwrap().unwrap();
+        assert_eq!(stopped.status, JobStatus::Queued);
+    });
+    let (w2, _) = worker(&f, SlowFitter { steps: 3, step: Duration::from_millis(1) });
+    let done = w2.try_execute_next().unwrap().unwrap();
+    assert_eq!((done.id, done.status, done.attempts), (job.id, JobStatus::Succeeded, 2));
+}
+
+#[test]
+fn progress_is_persisted_while_the_fit_runs() {
+    let f = fixture();
+    let (w, shutdown) = worker(&f, SlowFitter { steps: 100_000, step: Duration::from_millis(2) });
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    std::thread::scope(|s| {
+        let run = s.spawn(|| w.try_execute_next());
+        wait_until_running(&f.queue, job.id);
+        // PERSIST_EVERY is 1 s: after 1.5 s at least one mid-fit write must have happened.
+        std::thread::sleep(Duration::from_millis(1500));
+        let seen = f.queue.store().get_job(job.id).unwrap().unwrap();
+        shutdown.store(true, Ordering::Relaxed);
+        run.join().unwrap().unwrap();
+        assert!(seen.progress.iteration > 0, "{:?}", seen.progress);
+        assert!(seen.progress.fraction > 0.0 && seen.progress.fraction < 1.0);
+        assert!(seen.progress.eta_s.is_some() && seen.progress.loss.is_some());
+    });
+}
+
+#[test]
+fn a_pool_runs_every_submitted_job_and_stops_cleanly() {
+    let f = fixture();
+    let pool = WorkerPool::start(f.queue.clone(), Arc::new(CoreFitter), 2, 1).unwrap();
+    let ids: Vec<Uuid> = (0..3)
+        .map(|_| {
+            let job = JobQueue::new_job(f.sequence, Method::Nsfp, tiny_params(Method::Nsfp));
+            f.queue.submit(&job).unwrap();
+            job.id
+        })
+        .collect();
+    for _ in 0..2000 {
+        let done = f
+            .queue
+            .store()
+            .list_jobs(&JobFilter { status: Some(JobStatus::Succeeded), limit: 10, ..Default::default() })
+            .unwrap();
+        if done.len() == ids.len() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    pool.shutdown();
+    for id in ids {
+        let job = f.queue.store().get_job(id).unwrap().unwrap();
+        assert_eq!(job.status, JobStatus::Succeeded, "{:?}", job.error);
+    }
+}

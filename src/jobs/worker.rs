@@ -1,0 +1,229 @@
+//! Workers: threads that claim queued jobs and run their fits, each on its own rayon pool,
+//! reporting progress (persisted at most about once a second) and honouring cancellation.
+
+use std::ops::ControlFlow;
+use std::panic::AssertUnwindSafe;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+
+use super::{Fitter, JobQueue};
+use crate::fit::{FitError, Progress, Sequence};
+use crate::store::{JobOutcome, JobProgress, JobRecord, StoreError};
+
+/// How often a running job's progress is written to the store.
+const PERSIST_EVERY: Duration = Duration::from_secs(1);
+/// How often watchers (server-sent events) get a new state at most.
+const PUBLISH_EVERY: Duration = Duration::from_millis(100);
+/// How long an idle worker sleeps before looking at the queue again without being woken.
+const IDLE_POLL: Duration = Duration::from_millis(500);
+
+/// Runs jobs one at a time. [`WorkerPool`] drives several on threads; tests call
+/// [`Worker::try_execute_next`] directly.
+pub struct Worker {
+    queue: Arc<JobQueue>,
+    fitter: Arc<dyn Fitter>,
+    pool: rayon::ThreadPool,
+    shutdown: Arc<AtomicBool>,
+}
+
+impl std::fmt::Debug for Worker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Worker").field("threads", &self.pool.current_num_threads()).finish_non_exhaustive()
+    }
+}
+
+impl Worker {
+    /// A worker whose fits use `threads` threads; it stops between iterations once
+    /// `shutdown` is set, putting its job back in the queue.
+    pub fn new(
+        queue: Arc<JobQueue>,
+        fitter: Arc<dyn Fitter>,
+        threads: usize,
+        shutdown: Arc<AtomicBool>,
+    ) -> anyhow::Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .thread_name(|i| format!("mbnt-fit-{i}"))
+            .build()
+            .context("creating a fit thread pool")?;
+        Ok(Self { queue, fitter, pool, shutdown })
+    }
+
+    /// Claims the oldest queued job and runs it to its end; returns its final state, or
+    /// `None` when the queue was empty. Blocking (for as long as the fit takes).
+    pub fn try_execute_next(&self) -> Result<Option<JobRecord>, StoreError> {
+        let Some(job) = self.queue.store.claim_next_job()? else {
+            return Ok(None);
+        };
+        let id = job.id;
+        let cancel = self.queue.register_running(id);
+        let result = self.execute(job, &cancel);
+        self.queue.unregister_running(id);
+        let done = result?;
+        self.queue.publish(&done);
+        Ok(Some(done))
+    }
+
+    #[tracing::instrument(skip_all, fields(job_id = %job.id, method = job.method.name()))]
+    fn execute(&self, mut job: JobRecord, cancel: &AtomicBool) -> Result<JobRecord, StoreError> {
+        tracing::info!(attempt = job.attempts, "fit started");
+        let store = self.queue.store.clone();
+        job.progress = JobProgress { iterations: job.params.iterations, ..JobProgress::default() };
+        store.update_progress(job.id, &job.progress)?;
+        self.queue.publish(&job);
+        let sequence = match load_sequence(&*store, &job) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!(error = %e, "could not load the job's sequence");
+                return store
+                    .finish_job(job.id, JobOutcome::Failed { error: format!("could not load the sequence: {e}") });
+            }
+        };
+        let (method, params) = (job.method, job.params.clone());
+        let started = Instant::now();
+        let mut last_persist = started;
+        let mut last_publish = started;
+        let mut store_error = None;
+        let mut on_progress = |p: &Progress| -> ControlFlow<()> {
+            let elapsed_s = started.elapsed().as_secs_f64();
+            let rate = if elapsed_s > 0.0 { p.iteration as f64 / elapsed_s } else { 0.0 };
+            self.queue.stats.record(job.id, rate);
+            let remaining = p.iterations.saturating_sub(p.iteration) as f64;
+            job.progress = JobProgress {
+                fraction: if p.iterations > 0 { (p.iteration as f64 / p.iterations as f64).min(1.0) } else { 0.0 },
+                iteration: p.iteration,
+                iterations: p.iterations,
+                loss: Some(p.loss),
+                eta_s: (rate > 0.0).then(|| remaining / rate),
+            };
+            let now = Instant::now();
+            if now - last_persist >= PERSIST_EVERY || p.iteration >= p.iterations {
+                last_persist = now;
+                match store.update_progress(job.id, &job.progress) {
+                    Ok(true) => cancel.store(true, Ordering::Relaxed),
+                    Ok(false) => {}
+                    // Keep fitting: progress is advisory, and the outcome is retried below.
+                    Err(e) => store_error = Some(e),
+                }
+            }
+            if now - last_publish >= PUBLISH_EVERY {
+                last_publish = now;
+                self.queue.publish(&job);
+            }
+            if cancel.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed) {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        };
+        let fitter = &*self.fitter;
+        let result = std::panic::catch_unwind(AssertUnwindSafe(|| {
+            self.pool.install(|| fitter.fit(&sequence, method, &params, &mut on_progress))
+        }));
+        if let Some(e) = store_error {
+            tracing::warn!(error = %e, "progress could not be stored during the fit");
+        }
+        let outcome = match result {
+            Ok(Ok(model)) => {
+                let bytes = model.to_bytes();
+                tracing::info!(seconds = started.elapsed().as_secs_f64(), "fit succeeded");
+                return store.finish_job(job.id, JobOutcome::Succeeded { model: &bytes });
+            }
+            Ok(Err(FitError::Cancelled { iteration })) if !cancel.load(Ordering::Relaxed) => {
+                tracing::info!(iteration, "fit interrupted by shutdown; the job goes back to the queue");
+                return store.requeue_job(job.id);
+            }
+            Ok(Err(FitError::Cancelled { iteration })) => {
+                tracing::info!(iteration, "fit cancelled");
+                JobOutcome::Cancelled
+            }
+            Ok(Err(e)) => {
+                tracing::warn!(error = %e, "fit failed");
+                JobOutcome::Failed { error: e.to_string() }
+            }
+            Err(panic) => {
+                let what = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_default();
+                tracing::error!(panic = %what, "fit panicked");
+                JobOutcome::Failed { error: "internal error: the fit stopped unexpectedly".into() }
+            }
+        };
+        store.finish_job(job.id, outcome)
+    }
+}
+
+/// Reads a job's sequence from the store.
+fn load_sequence(store: &dyn crate::store::Store, job: &JobRecord) -> Result<Sequence, StoreError> {
+    let record = store
+        .get_sequence(job.sequence_id)?
+        .ok_or_else(|| StoreError::Missing(format!("sequence {}", job.sequence_id)))?;
+    let frames = (0..record.frames()).map(|k| store.read_frame(record.id, k)).collect::<Result<Vec<_>, _>>()?;
+    Ok(Sequence { frames, timestamps_s: record.timestamps_s, poses: record.poses })
+}
+
+/// A fixed number of worker threads, so that at most that many fits run at once.
+pub struct WorkerPool {
+    queue: Arc<JobQueue>,
+    shutdown: Arc<AtomicBool>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for WorkerPool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorkerPool").field("workers", &self.threads.len()).finish_non_exhaustive()
+    }
+}
+
+impl WorkerPool {
+    /// Starts `workers` threads, each running fits on `threads_per_job` threads.
+    pub fn start(
+        queue: Arc<JobQueue>,
+        fitter: Arc<dyn Fitter>,
+        workers: usize,
+        threads_per_job: usize,
+    ) -> anyhow::Result<Self> {
+        let shutdown = Arc::new(AtomicBool::new(false));
+        let mut threads = Vec::with_capacity(workers);
+        for i in 0..workers {
+            let worker = Worker::new(queue.clone(), fitter.clone(), threads_per_job, shutdown.clone())?;
+            let handle = std::thread::Builder::new()
+                .name(format!("mbnt-worker-{i}"))
+                .spawn(move || worker_loop(&worker))
+                .context("starting a worker thread")?;
+            threads.push(handle);
+        }
+        Ok(Self { queue, shutdown, threads })
+    }
+
+    /// Stops the workers: running fits stop at their next iteration and go back to the
+    /// queue (they run again on the next start). Blocks until every worker has stopped.
+    pub fn shutdown(self) {
+        self.shutdown.store(true, Ordering::Relaxed);
+        self.queue.wake.notify();
+        for t in self.threads {
+            if t.join().is_err() {
+                tracing::error!("a worker thread panicked");
+            }
+        }
+    }
+}
+
+fn worker_loop(worker: &Worker) {
+    while !worker.shutdown.load(Ordering::Relaxed) {
+        match worker.try_execute_next() {
+            Ok(Some(_)) => {}
+            Ok(None) => worker.queue.wake.wait(IDLE_POLL),
+            Err(e) => {
+                tracing::error!(error = %e, "worker could not use the store; retrying");
+                std::thread::sleep(IDLE_POLL);
+            }
+        }
+    }
+}

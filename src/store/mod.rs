@@ -1,0 +1,316 @@
+//! Persistent storage of the service: sequences (metadata and frames), jobs (the queue, their
+//! progress and outcome) and fitted models.
+//!
+//! Everything goes through the [`Store`] trait so that another backend (e.g. PostgreSQL for the
+//! queue and an object store for frames and models, with many worker machines) can replace the
+//! embedded default, [`SqliteStore`] (an SQLite file plus a local data directory), without
+//! touching the routes or the workers. Methods are blocking: async callers run them on
+//! `spawn_blocking`.
+
+pub mod files;
+pub mod sqlite;
+
+use serde::{Deserialize, Serialize};
+use uuid::Uuid;
+
+use crate::fit::{LossTerms, Method, ValidFitParams};
+use crate::geometry::Point;
+
+pub use sqlite::SqliteStore;
+
+/// A stored sequence's metadata (its frames live beside it, see [`Store::read_frame`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SequenceRecord {
+    /// Identifier.
+    pub id: Uuid,
+    /// Optional user-given name.
+    pub name: Option<String>,
+    /// Number of points of each frame (its length is the frame count T).
+    pub points_per_frame: Vec<usize>,
+    /// Timestamps (s, strictly increasing) when given at upload.
+    pub timestamps_s: Option<Vec<f64>>,
+    /// Sensor-to-world poses (row-major 4 x 4), one per frame, when given at upload.
+    pub poses: Option<Vec<[f64; 16]>>,
+    /// Creation time, milliseconds since the Unix epoch.
+    pub created_at_ms: i64,
+}
+
+impl SequenceRecord {
+    /// Number of frames T.
+    pub fn frames(&self) -> usize {
+        self.points_per_frame.len()
+    }
+}
+
+/// What an upload supplies besides the frames.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SequenceMeta {
+    /// Optional name.
+    pub name: Option<String>,
+    /// Timestamps (s), one per frame, strictly increasing (checked by the caller).
+    pub timestamps_s: Option<Vec<f64>>,
+    /// Sensor-to-world poses, one per frame (checked by the caller).
+    pub poses: Option<Vec<[f64; 16]>>,
+}
+
+/// Life cycle of a job: `queued -> running -> succeeded | failed | cancelled`; a running job
+/// goes back to `queued` when its process stops before the fit ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobStatus {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker is fitting it.
+    Running,
+    /// The model is stored and can be queried.
+    Succeeded,
+    /// The fit stopped with an error (see the job's `error`).
+    Failed,
+    /// Cancelled by a user.
+    Cancelled,
+}
+
+impl JobStatus {
+    /// Every status, in life-cycle order.
+    pub const ALL: [JobStatus; 5] =
+        [JobStatus::Queued, JobStatus::Running, JobStatus::Succeeded, JobStatus::Failed, JobStatus::Cancelled];
+
+    /// The lower-case name used in the API and the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+
+    /// Whether the job can no longer change.
+    pub fn is_terminal(self) -> bool {
+        matches!(self, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+    }
+}
+
+impl std::str::FromStr for JobStatus {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        JobStatus::ALL
+            .into_iter()
+            .find(|j| j.as_str() == s)
+            .ok_or_else(|| format!("unknown status {s:?} (expected queued, running, succeeded, failed or cancelled)"))
+    }
+}
+
+/// How far a job has come.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct JobProgress {
+    /// Fraction of the planned iterations done, in [0, 1] (1 once succeeded).
+    pub fraction: f64,
+    /// Iterations done.
+    pub iteration: usize,
+    /// Iterations planned (an upper bound for methods that stop early).
+    pub iterations: usize,
+    /// Loss terms of the latest iteration, once one is done.
+    pub loss: Option<LossTerms>,
+    /// Estimated seconds until the fit ends, once an iteration is done.
+    pub eta_s: Option<f64>,
+}
+
+/// A job: one fit of one method to one sequence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobRecord {
+    /// Identifier.
+    pub id: Uuid,
+    /// The sequence fitted.
+    pub sequence_id: Uuid,
+    /// The method.
+    pub method: Method,
+    /// Every hyper-parameter, defaults filled in.
+    pub params: ValidFitParams,
+    /// Where the job is in its life cycle.
+    pub status: JobStatus,
+    /// Progress of the current (or last) run.
+    pub progress: JobProgress,
+    /// Why the job failed, for failed jobs.
+    pub error: Option<String>,
+    /// A user asked to cancel the running job; its worker stops at the next iteration.
+    pub cancel_requested: bool,
+    /// How many times a worker has started the job (more than 1 after a restart).
+    pub attempts: u32,
+    /// Creation time, ms since the Unix epoch.
+    pub created_at_ms: i64,
+    /// When the current (or last) run started, ms since the Unix epoch.
+    pub started_at_ms: Option<i64>,
+    /// When the job reached a terminal status, ms since the Unix epoch.
+    pub finished_at_ms: Option<i64>,
+}
+
+/// How a run ended, as recorded by [`Store::finish_job`].
+#[derive(Debug)]
+pub enum JobOutcome<'a> {
+    /// The fit produced this serialised model.
+    Succeeded {
+        /// [`crate::trajectory::FittedModel::to_bytes`] of the model.
+        model: &'a [u8],
+    },
+    /// The fit failed with this message.
+    Failed {
+        /// What went wrong, for the user.
+        error: String,
+    },
+    /// The fit was cancelled at a user's request.
+    Cancelled,
+}
+
+/// Which jobs [`Store::list_jobs`] returns (newest first).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct JobFilter {
+    /// Only jobs with this status.
+    pub status: Option<JobStatus>,
+    /// Only jobs of this sequence.
+    pub sequence_id: Option<Uuid>,
+    /// At most this many.
+    pub limit: usize,
+}
+
+/// What [`Store::delete_sequence`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeleteOutcome {
+    /// The sequence, its finished jobs and their models are gone.
+    Deleted,
+    /// No such sequence.
+    NotFound,
+    /// Jobs of the sequence are queued or running; cancel them first.
+    HasActiveJobs,
+}
+
+/// What [`Store::request_cancel`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CancelOutcome {
+    /// No such job.
+    NotFound,
+    /// A queued job is now cancelled, or a running one is flagged for its worker to stop.
+    Accepted(JobRecord),
+    /// The job had already succeeded or failed.
+    AlreadyFinished(JobRecord),
+}
+
+/// A storage failure (I/O, database, corrupt data). Users see an opaque 500.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The database failed.
+    #[error("database: {0}")]
+    Database(#[from] rusqlite::Error),
+    /// A file operation failed.
+    #[error("file: {0}")]
+    Io(#[from] std::io::Error),
+    /// Stored data could not be decoded.
+    #[error("corrupt stored data: {0}")]
+    Corrupt(String),
+    /// A record the operation needs does not exist.
+    #[error("{0} not found")]
+    Missing(String),
+}
+
+/// Receives the frames of a sequence being uploaded, in order. Dropping it without
+/// [`FrameSink::commit`] discards everything written.
+pub trait FrameSink: Send {
+    /// Stores the next frame.
+    fn put_frame(&mut self, points: &[Point]) -> Result<(), StoreError>;
+    /// Frames stored so far.
+    fn frames_written(&self) -> usize;
+    /// Makes the sequence visible, atomically, with `meta`.
+    fn commit(self: Box<Self>, meta: SequenceMeta) -> Result<SequenceRecord, StoreError>;
+}
+
+/// Storage of sequences, jobs and models. Every method blocks; implementations are shared
+/// between the HTTP handlers and the worker threads.
+pub trait Store: Send + Sync + 'static {
+    /// Starts an upload of a new sequence.
+    fn begin_sequence(&self) -> Result<Box<dyn FrameSink>, StoreError>;
+    /// A sequence's metadata.
+    fn get_sequence(&self, id: Uuid) -> Result<Option<SequenceRecord>, StoreError>;
+    /// Sequences, newest first, at most `limit`.
+    fn list_sequences(&self, limit: usize) -> Result<Vec<SequenceRecord>, StoreError>;
+    /// Deletes a sequence with its finished jobs and their models, unless jobs are active.
+    fn delete_sequence(&self, id: Uuid) -> Result<DeleteOutcome, StoreError>;
+    /// Frame `k` of sequence `id`.
+    fn read_frame(&self, id: Uuid, k: usize) -> Result<Vec<Point>, StoreError>;
+
+    /// Adds a queued job. Errors with [`StoreError::Missing`] when its sequence does not exist.
+    fn insert_job(&self, job: &JobRecord) -> Result<(), StoreError>;
+    /// A job.
+    fn get_job(&self, id: Uuid) -> Result<Option<JobRecord>, StoreError>;
+    /// Jobs matching `filter`, newest first.
+    fn list_jobs(&self, filter: &JobFilter) -> Result<Vec<JobRecord>, StoreError>;
+    /// Atomically moves the oldest queued job to `running` and returns it.
+    fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError>;
+    /// Records a running job's progress; returns whether a user asked to cancel it.
+    fn update_progress(&self, id: Uuid, progress: &JobProgress) -> Result<bool, StoreError>;
+    /// Records how a running job's run ended (the model first, durably, then the status).
+    fn finish_job(&self, id: Uuid, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError>;
+    /// Puts a running job back in the queue (its process is stopping before the fit ended).
+    fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError>;
+    /// Cancels a queued job, or asks the worker of a running one to stop.
+    fn request_cancel(&self, id: Uuid) -> Result<CancelOutcome, StoreError>;
+    /// Puts every `running` job back in the queue: called once at startup, when no worker of
+    /// this store can be running (their process died). Returns how many were re-queued.
+    fn requeue_running_jobs(&self) -> Result<usize, StoreError>;
+    /// The serialised model of a succeeded job.
+    fn read_model(&self, job_id: Uuid) -> Result<Vec<u8>, StoreError>;
+    /// Number of jobs in each status (statuses without jobs are absent).
+    fn count_jobs_by_status(&self) -> Result<Vec<(JobStatus, u64)>, StoreError>;
+    /// Checks that the storage answers (for /healthz).
+    fn ping(&self) -> Result<(), StoreError>;
+}
+
+/// Milliseconds since the Unix epoch, now.
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+/// Formats milliseconds since the Unix epoch as RFC 3339 UTC (`2026-11-03T12:34:56.789Z`).
+pub fn rfc3339(ms: i64) -> String {
+    let secs = ms.div_euclid(1000);
+    let millis = ms.rem_euclid(1000);
+    let days = secs.div_euclid(86_400);
+    let sod = secs.rem_euclid(86_400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's `civil_from_days`).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!("{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{millis:03}Z", sod / 3600, (sod / 60) % 60, sod % 60)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rfc3339_matches_known_instants() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00.000Z");
+        // 2000-02-29T23:59:59.999Z, a leap day in a year divisible by 400.
+        assert_eq!(rfc3339(951_868_799_999), "2000-02-29T23:59:59.999Z");
+        // 2026-11-03T12:00:00Z.
+        assert_eq!(rfc3339(1_793_707_200_000), "2026-11-03T12:00:00.000Z");
+        assert_eq!(rfc3339(-1), "1969-12-31T23:59:59.999Z");
+    }
+
+    #[test]
+    fn statuses_round_trip_through_their_names() {
+        for s in JobStatus::ALL {
+            assert_eq!(s.as_str().parse::<JobStatus>().unwrap(), s);
+        }
+        assert!("done".parse::<JobStatus>().is_err());
+    }
+}

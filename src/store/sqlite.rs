@@ -1,0 +1,781 @@
+//! The embedded store: one SQLite database (WAL mode) for metadata, the queue and progress,
+//! and the data directory for frames and models ([`super::files`]).
+//!
+//! One connection behind a mutex: statements are short (the heavy bytes live in files), so
+//! a pool would buy little; callers run every method off the async executor.
+
+use std::fs;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use rusqlite::{Connection, OptionalExtension, Row, params};
+use uuid::Uuid;
+
+use super::files::{self, DataDir};
+use super::{
+    CancelOutcome, DeleteOutcome, FrameSink, JobFilter, JobOutcome, JobProgress, JobRecord, JobStatus, SequenceMeta,
+    SequenceRecord, Store, StoreError, now_ms,
+};
+use crate::fit::Method;
+use crate::geometry::Point;
+
+/// Schema version stored in `PRAGMA user_version`.
+const SCHEMA_VERSION: i64 = 1;
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS sequences (
+    id TEXT PRIMARY KEY,
+    name TEXT,
+    points_per_frame TEXT NOT NULL,
+    timestamps TEXT,
+    poses TEXT,
+    created_at INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    sequence_id TEXT NOT NULL,
+    method TEXT NOT NULL,
+    params TEXT NOT NULL,
+    status TEXT NOT NULL,
+    progress TEXT NOT NULL,
+    error TEXT,
+    cancel_requested INTEGER NOT NULL DEFAULT 0,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    created_at INTEGER NOT NULL,
+    started_at INTEGER,
+    finished_at INTEGER
+);
+CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status);
+CREATE INDEX IF NOT EXISTS jobs_by_sequence ON jobs (sequence_id);
+";
+
+const JOB_COLUMNS: &str = "id, sequence_id, method, params, status, progress, error, cancel_requested, attempts, \
+                           created_at, started_at, finished_at";
+
+struct Inner {
+    conn: Mutex<Connection>,
+    dir: DataDir,
+}
+
+impl Inner {
+    fn conn(&self) -> MutexGuard<'_, Connection> {
+        // A panic while holding the lock cannot leave SQLite inconsistent (statements are
+        // atomic), so a poisoned lock is still usable.
+        self.conn.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// SQLite + data-directory implementation of [`Store`]. Cheap to clone (shared state).
+#[derive(Clone)]
+pub struct SqliteStore {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for SqliteStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SqliteStore").field("dir", &self.inner.dir.root()).finish()
+    }
+}
+
+impl SqliteStore {
+    /// Opens (creating when absent) the store in `data_dir`, and removes what a crash may
+    /// have left behind: staged uploads, upload parts, and files no record refers to.
+    pub fn open(data_dir: &std::path::Path) -> Result<Self, StoreError> {
+        let dir = DataDir::create(data_dir)?;
+        let conn = Connection::open(dir.database())?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        let mode: String = conn.query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))?;
+        if !mode.eq_ignore_ascii_case("wal") {
+            return Err(StoreError::Corrupt(format!("could not switch the database to WAL mode (got {mode})")));
+        }
+        // FULL: a committed job or sequence survives a power loss, not just a process crash.
+        conn.execute_batch("PRAGMA synchronous = FULL;")?;
+        let version: i64 = conn.query_row("PRAGMA user_version", [], |r| r.get(0))?;
+        if version > SCHEMA_VERSION {
+            return Err(StoreError::Corrupt(format!(
+                "database schema version {version} is newer than this program's ({SCHEMA_VERSION})"
+            )));
+        }
+        conn.execute_batch(SCHEMA)?;
+        conn.execute_batch(&format!("PRAGMA user_version = {SCHEMA_VERSION};"))?;
+        let store = Self { inner: Arc::new(Inner { conn: Mutex::new(conn), dir }) };
+        store.sweep()?;
+        Ok(store)
+    }
+
+    /// The data directory.
+    pub fn data_dir(&self) -> &DataDir {
+        &self.inner.dir
+    }
+
+    /// Removes files no committed record refers to (left by a crash mid-upload or mid-delete).
+    fn sweep(&self) -> Result<(), StoreError> {
+        let dir = &self.inner.dir;
+        for parent in [dir.staging_dir(), dir.tmp_dir()] {
+            for entry in fs::read_dir(&parent)? {
+                let path = entry?.path();
+                let removed = if path.is_dir() { fs::remove_dir_all(&path) } else { fs::remove_file(&path) };
+                if let Err(e) = removed {
+                    tracing::warn!(path = %path.display(), error = %e, "could not remove a leftover upload");
+                }
+            }
+        }
+        let (sequences, models) = {
+            let conn = self.inner.conn();
+            let sequences: Vec<String> =
+                conn.prepare("SELECT id FROM sequences")?.query_map([], |r| r.get(0))?.collect::<Result<_, _>>()?;
+            let models: Vec<String> = conn
+                .prepare("SELECT id FROM jobs WHERE status = 'succeeded'")?
+                .query_map([], |r| r.get(0))?
+                .collect::<Result<_, _>>()?;
+            (sequences, models)
+        };
+        for entry in fs::read_dir(dir.sequences_dir())? {
+            let entry = entry?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if !sequences.contains(&name) {
+                tracing::info!(sequence = %name, "removing frames of a sequence that was never committed or was deleted");
+                fs::remove_dir_all(entry.path())?;
+            }
+        }
+        for entry in fs::read_dir(dir.models_dir())? {
+            let entry = entry?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let job = name.strip_suffix(".mbnt").unwrap_or("");
+            if !models.iter().any(|m| m == job) {
+                fs::remove_file(entry.path())?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A sequence being uploaded into `staging/{id}/`.
+struct SqliteFrameSink {
+    inner: Arc<Inner>,
+    id: Uuid,
+    staging: std::path::PathBuf,
+    points_per_frame: Vec<usize>,
+    committed: bool,
+}
+
+impl FrameSink for SqliteFrameSink {
+    fn put_frame(&mut self, points: &[Point]) -> Result<(), StoreError> {
+        let k = self.points_per_frame.len();
+        files::write_frame_file(&self.staging.join(files::frame_file_name(k)), points)?;
+        self.points_per_frame.push(points.len());
+        Ok(())
+    }
+
+    fn frames_written(&self) -> usize {
+        self.points_per_frame.len()
+    }
+
+    fn commit(mut self: Box<Self>, meta: SequenceMeta) -> Result<SequenceRecord, StoreError> {
+        let record = SequenceRecord {
+            id: self.id,
+            name: meta.name,
+            points_per_frame: std::mem::take(&mut self.points_per_frame),
+            timestamps_s: meta.timestamps_s,
+            poses: meta.poses,
+            created_at_ms: now_ms(),
+        };
+        // Frames are fsynced; make their directory entries durable, then publish the
+        // directory with one rename, then the row. A crash before the row leaves an orphan
+        // directory that the next start removes.
+        files::sync_dir(&self.staging)?;
+        let target = self.inner.dir.sequence_dir(&self.id.to_string());
+        fs::rename(&self.staging, &target)?;
+        self.committed = true;
+        files::sync_dir(&self.inner.dir.sequences_dir())?;
+        let inserted = self.inner.conn().execute(
+            "INSERT INTO sequences (id, name, points_per_frame, timestamps, poses, created_at) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            params![
+                record.id.to_string(),
+                record.name,
+                json(&record.points_per_frame),
+                record.timestamps_s.as_ref().map(json),
+                record.poses.as_ref().map(json),
+                record.created_at_ms
+            ],
+        );
+        if let Err(e) = inserted {
+            let _ = fs::remove_dir_all(&target);
+            return Err(e.into());
+        }
+        Ok(record)
+    }
+}
+
+impl Drop for SqliteFrameSink {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = fs::remove_dir_all(&self.staging);
+        }
+    }
+}
+
+fn json<T: serde::Serialize>(value: &T) -> String {
+    serde_json::to_string(value).expect("plain data always serialises")
+}
+
+fn parse<T: serde::de::DeserializeOwned>(what: &str, text: &str) -> Result<T, StoreError> {
+    serde_json::from_str(text).map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))
+}
+
+fn parse_uuid(text: &str) -> Result<Uuid, StoreError> {
+    Uuid::parse_str(text).map_err(|e| StoreError::Corrupt(format!("id {text:?}: {e}")))
+}
+
+/// A `sequences` row as stored.
+struct RawSequence {
+    id: String,
+    name: Option<String>,
+    points_per_frame: String,
+    timestamps: Option<String>,
+    poses: Option<String>,
+    created_at: i64,
+}
+
+impl RawSequence {
+    const COLUMNS: &str = "id, name, points_per_frame, timestamps, poses, created_at";
+
+    fn from_row(r: &Row<'_>) -> rusqlite::Result<Self> {
+        Ok(Self {
+            id: r.get(0)?,
+            name: r.get(1)?,
+            points_per_frame: r.get(2)?,
+            timestamps: r.get(3)?,
+            poses: r.get(4)?,
+            created_at: r.get(5)?,
+        })
+    }
+
+    fn decode(self) -> Result<SequenceRecord, StoreError> {
+        Ok(SequenceRecord {
+            id: parse_uuid(&self.id)?,
+            name: self.name,
+            points_per_frame: parse("points_per_frame", &self.points_per_frame)?,
+            timestamps_s: self.timestamps.as_deref().map(|t| parse("timestamps", t)).transpose()?,
+            poses: self.poses.as_deref().map(|p| parse("poses", p)).transpose()?,
+            created_at_ms: self.created_at,
+        })
+    }
+}
+
+/// A `jobs` row as stored.
+struct RawJob {
+    id: String,
+    sequence_id: String,
+    method: String,
+    params: String,
+    status: String,
+    progress: String,
+    error: Option<String>,
+    cancel_requested: bool,
+    attempts: u32,
+    created_at: i64,
+    started_at: Option<i64>,
+    finished_at: Option<i64>,
+}
+
+impl RawJob {
+    fn from_row(r: &Row<'_>) -> rusqlite::Result<Self> {
+        Ok(Self {
+            id: r.get(0)?,
+            sequence_id: r.get(1)?,
+            method: r.get(2)?,
+            params: r.get(3)?,
+            status: r.get(4)?,
+            progress: r.get(5)?,
+            error: r.get(6)?,
+            cancel_requested: r.get(7)?,
+            attempts: r.get(8)?,
+            created_at: r.get(9)?,
+            started_at: r.get(10)?,
+            finished_at: r.get(11)?,
+        })
+    }
+
+    fn decode(self) -> Result<JobRecord, StoreError> {
+        Ok(JobRecord {
+            id: parse_uuid(&self.id)?,
+            sequence_id: parse_uuid(&self.sequence_id)?,
+            method: self.method.parse::<Method>().map_err(StoreError::Corrupt)?,
+            params: parse("params", &self.params)?,
+            status: self.status.parse::<JobStatus>().map_err(StoreError::Corrupt)?,
+            progress: parse("progress", &self.progress)?,
+            error: self.error,
+            cancel_requested: self.cancel_requested,
+            attempts: self.attempts,
+            created_at_ms: self.created_at,
+            started_at_ms: self.started_at,
+            finished_at_ms: self.finished_at,
+        })
+    }
+}
+
+fn get_job(conn: &Connection, id: Uuid) -> Result<Option<JobRecord>, StoreError> {
+    conn.query_row(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?1"), [id.to_string()], RawJob::from_row)
+        .optional()?
+        .map(RawJob::decode)
+        .transpose()
+}
+
+fn require_job(conn: &Connection, id: Uuid) -> Result<JobRecord, StoreError> {
+    get_job(conn, id)?.ok_or_else(|| StoreError::Missing(format!("job {id}")))
+}
+
+impl Store for SqliteStore {
+    fn begin_sequence(&self) -> Result<Box<dyn FrameSink>, StoreError> {
+        let id = Uuid::new_v4();
+        let staging = self.inner.dir.staging_dir().join(id.to_string());
+        fs::create_dir(&staging)?;
+        Ok(Box::new(SqliteFrameSink {
+            inner: self.inner.clone(),
+            id,
+            staging,
+            points_per_frame: Vec::new(),
+            committed: false,
+        }))
+    }
+
+    fn get_sequence(&self, id: Uuid) -> Result<Option<SequenceRecord>, StoreError> {
+        let conn = self.inner.conn();
+        conn.query_row(
+            &format!("SELECT {} FROM sequences WHERE id = ?1", RawSequence::COLUMNS),
+            [id.to_string()],
+            RawSequence::from_row,
+        )
+        .optional()?
+        .map(RawSequence::decode)
+        .transpose()
+    }
+
+    fn list_sequences(&self, limit: usize) -> Result<Vec<SequenceRecord>, StoreError> {
+        let conn = self.inner.conn();
+        let mut stmt = conn.prepare(&format!(
+            "SELECT {} FROM sequences ORDER BY created_at DESC, rowid DESC LIMIT ?1",
+            RawSequence::COLUMNS
+        ))?;
+        let raw = stmt
+            .query_map([i64::try_from(limit).unwrap_or(i64::MAX)], RawSequence::from_row)?
+            .collect::<Result<Vec<_>, _>>()?;
+        raw.into_iter().map(RawSequence::decode).collect()
+    }
+
+    fn delete_sequence(&self, id: Uuid) -> Result<DeleteOutcome, StoreError> {
+        let key = id.to_string();
+        let jobs: Vec<String> = {
+            let mut conn = self.inner.conn();
+            let tx = conn.transaction()?;
+            let exists = tx.query_row("SELECT 1 FROM sequences WHERE id = ?1", [&key], |_| Ok(())).optional()?;
+            if exists.is_none() {
+                return Ok(DeleteOutcome::NotFound);
+            }
+            let active: i64 = tx.query_row(
+                "SELECT COUNT(*) FROM jobs WHERE sequence_id = ?1 AND status IN ('queued', 'running')",
+                [&key],
+                |r| r.get(0),
+            )?;
+            if active > 0 {
+                return Ok(DeleteOutcome::HasActiveJobs);
+            }
+            let jobs = tx
+                .prepare("SELECT id FROM jobs WHERE sequence_id = ?1")?
+                .query_map([&key], |r| r.get(0))?
+                .collect::<Result<Vec<String>, _>>()?;
+            tx.execute("DELETE FROM jobs WHERE sequence_id = ?1", [&key])?;
+            tx.execute("DELETE FROM sequences WHERE id = ?1", [&key])?;
+            tx.commit()?;
+            jobs
+        };
+        // The rows are gone, so nothing refers to these files any more; if removing them
+        // fails, the next start's sweep does it.
+        for job in jobs {
+            let path = self.inner.dir.model_path(&job);
+            if let Err(e) = fs::remove_file(&path)
+                && e.kind() != std::io::ErrorKind::NotFound
+            {
+                tracing::warn!(path = %path.display(), error = %e, "could not remove a deleted job's model");
+            }
+        }
+        if let Err(e) = fs::remove_dir_all(self.inner.dir.sequence_dir(&key)) {
+            tracing::warn!(sequence = %key, error = %e, "could not remove a deleted sequence's frames");
+        }
+        Ok(DeleteOutcome::Deleted)
+    }
+
+    fn read_frame(&self, id: Uuid, k: usize) -> Result<Vec<Point>, StoreError> {
+        let path = self.inner.dir.sequence_dir(&id.to_string()).join(files::frame_file_name(k));
+        files::read_frame(&path).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::NotFound {
+                StoreError::Missing(format!("frame {k} of sequence {id}"))
+            } else {
+                StoreError::Io(e)
+            }
+        })
+    }
+
+    fn insert_job(&self, job: &JobRecord) -> Result<(), StoreError> {
+        let conn = self.inner.conn();
+        let inserted = conn.execute(
+            &format!(
+                "INSERT INTO jobs ({JOB_COLUMNS}) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12 \
+                 WHERE EXISTS (SELECT 1 FROM sequences WHERE id = ?2)"
+            ),
+            params![
+                job.id.to_string(),
+                job.sequence_id.to_string(),
+                job.method.name(),
+                json(&job.params),
+                job.status.as_str(),
+                json(&job.progress),
+                job.error,
+                job.cancel_requested,
+                job.attempts,
+                job.created_at_ms,
+                job.started_at_ms,
+                job.finished_at_ms
+            ],
+        )?;
+        if inserted == 0 {
+            return Err(StoreError::Missing(format!("sequence {}", job.sequence_id)));
+        }
+        Ok(())
+    }
+
+    fn get_job(&self, id: Uuid) -> Result<Option<JobRecord>, StoreError> {
+        get_job(&self.inner.conn(), id)
+    }
+
+    fn list_jobs(&self, filter: &JobFilter) -> Result<Vec<JobRecord>, StoreError> {
+        let conn = self.inner.conn();
+        let mut stmt = conn.prepare(&format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR status = ?1) AND (?2 IS NULL OR sequence_id = ?2) \
+             ORDER BY created_at DESC, rowid DESC LIMIT ?3"
+        ))?;
+        let raw = stmt
+            .query_map(
+                params![
+                    filter.status.map(JobStatus::as_str),
+                    filter.sequence_id.map(|s| s.to_string()),
+                    i64::try_from(filter.limit).unwrap_or(i64::MAX)
+                ],
+                RawJob::from_row,
+            )?
+            .collect::<Result<Vec<_>, _>>()?;
+        raw.into_iter().map(RawJob::decode).collect()
+    }
+
+    fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError> {
+        let conn = self.inner.conn();
+        conn.query_row(
+            &format!(
+                "UPDATE jobs SET status = 'running', started_at = ?1, attempts = attempts + 1 \
+                 WHERE id = (SELECT id FROM jobs WHERE status = 'queued' ORDER BY created_at, rowid LIMIT 1) \
+                 RETURNING {JOB_COLUMNS}"
+            ),
+            [now_ms()],
+            RawJob::from_row,
+        )
+        .optional()?
+        .map(RawJob::decode)
+        .transpose()
+    }
+
+    fn update_progress(&self, id: Uuid, progress: &JobProgress) -> Result<bool, StoreError> {
+        let conn = self.inner.conn();
+        let cancel: Option<bool> = conn
+            .query_row(
+                "UPDATE jobs SET progress = ?2 WHERE id = ?1 AND status = 'running' RETURNING cancel_requested",
+                params![id.to_string(), json(progress)],
+                |r| r.get(0),
+            )
+            .optional()?;
+        // A job that is no longer running (e.g. deleted under us) has nobody waiting: stop.
+        Ok(cancel.unwrap_or(true))
+    }
+
+    fn finish_job(&self, id: Uuid, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError> {
+        let key = id.to_string();
+        let (status, error) = match &outcome {
+            JobOutcome::Succeeded { model } => {
+                files::write_atomic(&self.inner.dir.model_path(&key), |w| std::io::Write::write_all(w, model))?;
+                (JobStatus::Succeeded, None)
+            }
+            JobOutcome::Failed { error } => (JobStatus::Failed, Some(error.clone())),
+            JobOutcome::Cancelled => (JobStatus::Cancelled, None),
+        };
+        let conn = self.inner.conn();
+        let mut job = require_job(&conn, id)?;
+        if status == JobStatus::Succeeded {
+            job.progress.fraction = 1.0;
+            job.progress.eta_s = Some(0.0);
+        }
+        conn.execute(
+            "UPDATE jobs SET status = ?2, error = ?3, progress = ?4, finished_at = ?5 WHERE id = ?1",
+            params![key, status.as_str(), error, json(&job.progress), now_ms()],
+        )?;
+        require_job(&conn, id)
+    }
+
+    fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError> {
+        let conn = self.inner.conn();
+        conn.execute("UPDATE jobs SET status = 'queued' WHERE id = ?1 AND status = 'running'", [id.to_string()])?;
+        require_job(&conn, id)
+    }
+
+    fn request_cancel(&self, id: Uuid) -> Result<CancelOutcome, StoreError> {
+        let mut conn = self.inner.conn();
+        let tx = conn.transaction()?;
+        let Some(job) = get_job(&tx, id)? else {
+            return Ok(CancelOutcome::NotFound);
+        };
+        let key = id.to_string();
+        match job.status {
+            JobStatus::Queued => {
+                tx.execute(
+                    "UPDATE jobs SET status = 'cancelled', finished_at = ?2 WHERE id = ?1",
+                    params![key, now_ms()],
+                )?;
+            }
+            JobStatus::Running => {
+                tx.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1", [&key])?;
+            }
+            JobStatus::Cancelled => {}
+            JobStatus::Succeeded | JobStatus::Failed => return Ok(CancelOutcome::AlreadyFinished(job)),
+        }
+        let job = require_job(&tx, id)?;
+        tx.commit()?;
+        Ok(CancelOutcome::Accepted(job))
+    }
+
+    fn requeue_running_jobs(&self) -> Result<usize, StoreError> {
+        let mut conn = self.inner.conn();
+        let tx = conn.transaction()?;
+        // A job whose cancellation was requested before the crash ends cancelled, as asked.
+        tx.execute(
+            "UPDATE jobs SET status = 'cancelled', finished_at = ?1 WHERE status = 'running' AND cancel_requested = 1",
+            [now_ms()],
+        )?;
+        let n = tx.execute("UPDATE jobs SET status = 'queued' WHERE status = 'running'", [])?;
+        tx.commit()?;
+        Ok(n)
+    }
+
+    fn read_model(&self, job_id: Uuid) -> Result<Vec<u8>, StoreError> {
+        fs::read(self.inner.dir.model_path(&job_id.to_string())).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::NotFound {
+                StoreError::Missing(format!("model of job {job_id}"))
+            } else {
+                StoreError::Io(e)
+            }
+        })
+    }
+
+    fn count_jobs_by_status(&self) -> Result<Vec<(JobStatus, u64)>, StoreError> {
+        let conn = self.inner.conn();
+        let mut stmt = conn.prepare("SELECT status, COUNT(*) FROM jobs GROUP BY status")?;
+        let rows = stmt.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, i64>(1)?)))?;
+        let mut out = Vec::new();
+        for row in rows {
+            let (status, n) = row?;
+            out.push((status.parse::<JobStatus>().map_err(StoreError::Corrupt)?, u64::try_from(n).unwrap_or(0)));
+        }
+        Ok(out)
+    }
+
+    fn ping(&self) -> Result<(), StoreError> {
+        self.inner.conn().query_row("SELECT 1", [], |_| Ok(()))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::FitParams;
+
+    fn temp_dir() -> std::path::PathBuf {
+        std::env::temp_dir().join(format!("mbnt-store-{}", Uuid::new_v4()))
+    }
+
+    fn sequence(store: &SqliteStore) -> SequenceRecord {
+        let mut sink = store.begin_sequence().unwrap();
+        sink.put_frame(&[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]).unwrap();
+        sink.put_frame(&[[0.0, 1.0, 0.0]]).unwrap();
+        sink.commit(SequenceMeta { name: Some("s".into()), timestamps_s: Some(vec![0.0, 0.1]), poses: None }).unwrap()
+    }
+
+    fn job(sequence_id: Uuid) -> JobRecord {
+        JobRecord {
+            id: Uuid::new_v4(),
+            sequence_id,
+            method: Method::Ntp,
+            params: FitParams::default().check(Method::Ntp).unwrap(),
+            status: JobStatus::Queued,
+            progress: JobProgress::default(),
+            error: None,
+            cancel_requested: false,
+            attempts: 0,
+            created_at_ms: now_ms(),
+            started_at_ms: None,
+            finished_at_ms: None,
+        }
+    }
+
+    #[test]
+    fn a_committed_sequence_and_its_frames_survive_reopening() {
+        let dir = temp_dir();
+        let id = {
+            let store = SqliteStore::open(&dir).unwrap();
+            sequence(&store).id
+        };
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = store.get_sequence(id).unwrap().unwrap();
+        assert_eq!(seq.points_per_frame, vec![2, 1]);
+        assert_eq!(seq.timestamps_s, Some(vec![0.0, 0.1]));
+        assert_eq!(store.read_frame(id, 1).unwrap(), vec![[0.0, 1.0, 0.0]]);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_abandoned_upload_leaves_nothing_behind() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let mut sink = store.begin_sequence().unwrap();
+        sink.put_frame(&[[1.0, 2.0, 3.0]]).unwrap();
+        drop(sink);
+        assert_eq!(fs::read_dir(store.data_dir().staging_dir()).unwrap().count(), 0);
+        assert!(store.list_sequences(10).unwrap().is_empty());
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn jobs_are_claimed_oldest_first_and_only_once() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let (a, b) = (job(seq.id), job(seq.id));
+        store.insert_job(&a).unwrap();
+        store.insert_job(&b).unwrap();
+        let first = store.claim_next_job().unwrap().unwrap();
+        assert_eq!((first.id, first.status, first.attempts), (a.id, JobStatus::Running, 1));
+        assert_eq!(store.claim_next_job().unwrap().unwrap().id, b.id);
+        assert!(store.claim_next_job().unwrap().is_none());
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_job_for_a_missing_sequence_is_refused() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        assert!(matches!(store.insert_job(&job(Uuid::new_v4())), Err(StoreError::Missing(_))));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn running_jobs_go_back_to_the_queue_on_restart_unless_cancelled() {
+        let dir = temp_dir();
+        let (a, b) = {
+            let store = SqliteStore::open(&dir).unwrap();
+            let seq = sequence(&store);
+            let (a, b) = (job(seq.id), job(seq.id));
+            store.insert_job(&a).unwrap();
+            store.insert_job(&b).unwrap();
+            store.claim_next_job().unwrap();
+            store.claim_next_job().unwrap();
+            assert!(matches!(store.request_cancel(b.id).unwrap(), CancelOutcome::Accepted(_)));
+            (a.id, b.id)
+        };
+        let store = SqliteStore::open(&dir).unwrap();
+        assert_eq!(store.requeue_running_jobs().unwrap(), 1);
+        assert_eq!(store.get_job(a).unwrap().unwrap().status, JobStatus::Queued);
+        assert_eq!(store.get_job(b).unwrap().unwrap().status, JobStatus::Cancelled);
+        let again = store.claim_next_job().unwrap().unwrap();
+        assert_eq!((again.id, again.attempts), (a, 2));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn cancelling_a_queued_job_is_immediate_and_a_running_one_is_flagged() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let (a, b) = (job(seq.id), job(seq.id));
+        store.insert_job(&a).unwrap();
+        store.claim_next_job().unwrap();
+        store.insert_job(&b).unwrap();
+        let CancelOutcome::Accepted(queued) = store.request_cancel(b.id).unwrap() else { panic!() };
+        assert_eq!(queued.status, JobStatus::Cancelled);
+        assert!(!store.update_progress(a.id, &JobProgress::default()).unwrap());
+        let CancelOutcome::Accepted(running) = store.request_cancel(a.id).unwrap() else { panic!() };
+        assert_eq!((running.status, running.cancel_requested), (JobStatus::Running, true));
+        assert!(store.update_progress(a.id, &JobProgress::default()).unwrap());
+        let done = store.finish_job(a.id, JobOutcome::Cancelled).unwrap();
+        assert_eq!(done.status, JobStatus::Cancelled);
+        assert!(done.finished_at_ms.is_some());
+        assert_eq!(store.request_cancel(Uuid::new_v4()).unwrap(), CancelOutcome::NotFound);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_sequence_with_active_jobs_is_kept_and_deleting_removes_models() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let a = job(seq.id);
+        store.insert_job(&a).unwrap();
+        assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::HasActiveJobs);
+        store.claim_next_job().unwrap();
+        let done = store.finish_job(a.id, JobOutcome::Succeeded { model: b"model" }).unwrap();
+        assert_eq!((done.status, done.progress.fraction), (JobStatus::Succeeded, 1.0));
+        assert_eq!(store.read_model(a.id).unwrap(), b"model");
+        assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::Deleted);
+        assert!(store.get_job(a.id).unwrap().is_none());
+        assert!(matches!(store.read_model(a.id), Err(StoreError::Missing(_))));
+        assert!(!store.data_dir().sequence_dir(&seq.id.to_string()).exists());
+        assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::NotFound);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn orphan_files_are_swept_at_startup() {
+        let dir = temp_dir();
+        {
+            let store = SqliteStore::open(&dir).unwrap();
+            let d = store.data_dir();
+            fs::create_dir_all(d.sequence_dir("not-a-committed-sequence")).unwrap();
+            fs::write(d.model_path("no-such-job"), b"x").unwrap();
+            fs::write(d.tmp_dir().join("part"), b"x").unwrap();
+            fs::create_dir_all(d.staging_dir().join("half")).unwrap();
+        }
+        let store = SqliteStore::open(&dir).unwrap();
+        let d = store.data_dir();
+        for sub in [d.sequences_dir(), d.models_dir(), d.tmp_dir(), d.staging_dir()] {
+            assert_eq!(fs::read_dir(&sub).unwrap().count(), 0, "{}", sub.display());
+        }
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn jobs_are_listed_by_status_and_counted() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        for _ in 0..3 {
+            store.insert_job(&job(seq.id)).unwrap();
+        }
+        store.claim_next_job().unwrap();
+        let queued = store
+            .list_jobs(&JobFilter { status: Some(JobStatus::Queued), sequence_id: Some(seq.id), limit: 10 })
+            .unwrap();
+        assert_eq!(queued.len(), 2);
+        let mut counts = store.count_jobs_by_status().unwrap();
+        counts.sort_by_key(|(s, _)| s.as_str());
+        assert_eq!(counts, vec![(JobStatus::Queued, 2), (JobStatus::Running, 1)]);
+        assert_eq!(store.list_jobs(&JobFilter { limit: 1, ..Default::default() }).unwrap().len(), 1);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,671 @@
+//! The HTTP API over a real bound port: every route, bad inputs, auth, the OpenAPI document,
+//! restart recovery, a full round trip, and the examples in `api/`.
+
+mod common;
+
+use std::collections::BTreeSet;
+use std::io::Read;
+use std::sync::Arc;
+use std::time::Duration;
+
+use common::{Options, SlowFitter, TestServer, frames, npy_bytes, ply_bytes, read_events};
+use mbnt::http::{Limits, ROUTES};
+use reqwest::Method;
+use reqwest::multipart::{Form, Part};
+use serde_json::{Value, json};
+
+fn slow(steps: usize, step_ms: u64) -> Options {
+    Options { fitter: Arc::new(SlowFitter { steps, step: Duration::from_millis(step_ms) }), ..Options::default() }
+}
+
+fn zip_names(bytes: &[u8]) -> Vec<String> {
+    let mut archive = zip::ZipArchive::new(std::io::Cursor::new(bytes)).expect("a zip archive");
+    let mut names: Vec<String> = (0..archive.len()).map(|i| archive.by_index(i).unwrap().name().to_string()).collect();
+    names.sort();
+    names
+}
+
+#[tokio::test]
+async fn the_open_routes_answer_without_a_token_and_serve_the_committed_document() {
+    let s = TestServer::start_with(Options { token: Some("secret".into()), ..Options::default() }).await;
+    let (status, body) = s.send("GET", "/healthz", s.client.get(s.url("/healthz"))).await;
+    assert_eq!((status, body), (200, json!({ "status": "ok" })));
+    let response = s.client.get(s.url("/openapi.yaml")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(response.headers()["content-type"], "application/yaml");
+    let text = response.text().await.unwrap();
+    assert_eq!(text, std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/openapi.yaml")).unwrap());
+    let response = s.client.get(s.url("/metrics")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    let text = response.text().await.unwrap();
+    for needle in [
+        "mbnt_jobs{status=\"queued\"} 0",
+        "mbnt_fit_iterations_total 0",
+        "mbnt_fit_iterations_per_second 0",
+        "mbnt_http_request_duration_seconds_bucket{method=\"GET\",route=\"/healthz\",le=\"+Inf\"} 1",
+        "mbnt_http_requests_total{method=\"GET\",route=\"/openapi.yaml\",status=\"200\"} 1",
+    ] {
+        assert!(text.contains(needle), "missing {needle:?} in\n{text}");
+    }
+}
+
+#[tokio::test]
+async fn v1_routes_need_the_right_bearer_token_when_one_is_configured() {
+    let mut s = TestServer::start_with(Options { token: Some("secret".into()), ..Options::default() }).await;
+    let (status, body) = s.get("/v1/sequences", "/v1/sequences").await;
+    assert_eq!(status, 200, "{body}");
+    s.token = None;
+    let response = s.client.get(s.url("/v1/sequences")).send().await.unwrap();
+    assert_eq!(response.headers()["www-authenticate"], "Bearer");
+    let (status, body) = s.get("/v1/sequences", "/v1/sequences").await;
+    assert_eq!((status, body["type"].as_str()), (401, Some("urn:mbnt:problem:unauthorized")));
+    s.token = Some("secreT".into());
+    assert_eq!(s.get("/v1/jobs", "/v1/jobs").await.0, 401);
+    s.token = Some("secret-and-more".into());
+    assert_eq!(s.post_json("/v1/jobs", "/v1/jobs", &json!({})).await.0, 401);
+}
+
+#[tokio::test]
+async fn the_router_and_openapi_yaml_describe_the_same_routes() {
+    let s = TestServer::start().await;
+    let documented: BTreeSet<(String, String)> = s.spec.operations().into_iter().collect();
+    let routed: BTreeSet<(String, String)> =
+        ROUTES.iter().map(|r| (r.method.to_string(), r.path.to_string())).collect();
+    assert_eq!(documented, routed, "openapi.yaml and mbnt::http::ROUTES differ");
+    // Every table entry is really served: no routing 404 or 405 for its method.
+    let id = uuid::Uuid::new_v4().to_string();
+    for route in ROUTES {
+        let path = route.path.replace("{id}", &id);
+        let method = Method::from_bytes(route.method.as_bytes()).unwrap();
+        let response = s.request(method, &path).send().await.unwrap();
+        let status = response.status().as_u16();
+        let body: Value = response.json().await.unwrap_or(Value::Null);
+        assert_ne!(status, 405, "{route:?}");
+        assert!(!(status == 404 && body["detail"] == "no such route"), "{route:?} is not routed: {body}");
+    }
+    // Unknown routes and methods are problems too.
+    let response = s.client.get(s.url("/v2/nothing")).send().await.unwrap();
+    assert_eq!(response.status(), 404);
+    assert_eq!(response.headers()["content-type"], "application/problem+json");
+    let response = s.client.put(s.url("/v1/jobs")).send().await.unwrap();
+    assert_eq!(response.status(), 405);
+    assert_eq!(response.headers()["content-type"], "application/problem+json");
+    let problem: Value = response.json().await.unwrap();
+    assert_eq!(problem["type"], "urn:mbnt:problem:method-not-allowed");
+}
+
+#[tokio::test]
+async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
+    let s = TestServer::start().await;
+    let f = frames(3, 300);
+    let (status, seq) = s
+        .post_json(
+            "/v1/sequences",
+            "/v1/sequences",
+            &json!({ "name": "demo", "frames": f, "timestamps": [10.0, 10.1, 10.2] }),
+        )
+        .await;
+    assert_eq!(status, 201, "{seq}");
+    assert_eq!(seq["frames"], 3);
+    assert_eq!(seq["points_per_frame"], json!([300, 300, 300]));
+    assert_eq!(seq["time_unit"], "s");
+    let id = seq["id"].as_str().unwrap();
+    let (status, got) = s.get("/v1/sequences/{id}", &format!("/v1/sequences/{id}")).await;
+    assert_eq!((status, &got), (200, &seq));
+    let (_, list) = s.get("/v1/sequences", "/v1/sequences").await;
+    assert_eq!(list["sequences"][0]["id"], id);
+
+    let job = s.submit(id, "mbnt").await;
+    let done = s.wait_status(&job, "succeeded").await;
+    assert_eq!(done["progress"]["fraction"], 1.0);
+    assert_eq!(done["method"], "mbnt");
+    assert_eq!(done["params"]["iterations"], 5);
+    let (_, jobs) = s.get("/v1/jobs", &format!("/v1/jobs?status=succeeded&sequence_id={id}")).await;
+    assert_eq!(jobs["jobs"].as_array().unwrap().len(), 1);
+
+    // Frame form: the frame's points at its own time are the points themselves.
+    let (status, answer) = s
+        .post_json(
+            "/v1/jobs/{id}/query",
+            &format!("/v1/jobs/{job}/query"),
+            &json!({ "frame": 1, "indices": [0, 5, 299], "times": [10.1, 10.0, 10.2] }),
+        )
+        .await;
+    assert_eq!(status, 200, "{answer}");
+    let positions = answer["positions"].as_array().unwrap();
+    assert_eq!(positions.len(), 3);
+    for (row, i) in positions.iter().zip([0usize, 5, 299]) {
+        assert_eq!(row.as_array().unwrap().len(), 3);
+        for c in 0..3 {
+            // f32 coordinates survive the JSON round trip exactly; 1e-5 m allows for a model
+            // whose displacement at the observation time is a rounding-level non-zero.
+            let got = row[0][c].as_f64().unwrap();
+            assert!((got - f[1][i][c] as f64).abs() < 1e-5, "point {i}: {got} vs {}", f[1][i][c]);
+        }
+    }
+    // Points form.
+    let (status, answer) = s
+        .post_json(
+            "/v1/jobs/{id}/query",
+            &format!("/v1/jobs/{job}/query"),
+            &json!({ "points": [[3.0, -1.5, 0.5], [10.0, 0.0, 0.2]], "t": 10.05, "times": [10.0, 10.2] }),
+        )
+        .await;
+    assert_eq!(status, 200, "{answer}");
+    assert_eq!(answer["positions"].as_array().unwrap().len(), 2);
+    assert_eq!(answer["positions"][1].as_array().unwrap().len(), 2);
+
+    // Labels: npz with one flow per pair plus the time axis; av2 with one feather per pair.
+    let response = s.request(Method::GET, &format!("/v1/jobs/{job}/labels?format=npz")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(response.headers()["content-type"], "application/octet-stream");
+    let npz = response.bytes().await.unwrap();
+    assert_eq!(zip_names(&npz), vec!["flow_000.npy", "flow_001.npy", "timestamps.npy"]);
+    let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&npz[..])).unwrap();
+    let mut flow = Vec::new();
+    archive.by_name("flow_001.npy").unwrap().read_to_end(&mut flow).unwrap();
+    assert!(flow.starts_with(b"\x93NUMPY"));
+    assert!(String::from_utf8_lossy(&flow[..128]).contains("(300, 3)"));
+    let response = s.request(Method::GET, &format!("/v1/jobs/{job}/labels?format=av2")).send().await.unwrap();
+    if cfg!(feature = "av2") {
+        assert_eq!(response.status(), 200);
+        assert_eq!(response.headers()["content-type"], "application/zip");
+        let av2 = response.bytes().await.unwrap();
+        assert_eq!(zip_names(&av2), vec!["000000.feather", "000001.feather"]);
+        let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&av2[..])).unwrap();
+        let mut feather = Vec::new();
+        archive.by_name("000001.feather").unwrap().read_to_end(&mut feather).unwrap();
+        // Arrow IPC files start and end with the magic "ARROW1".
+        assert!(feather.starts_with(b"ARROW1") && feather.ends_with(b"ARROW1"));
+        let text = String::from_utf8_lossy(&feather);
+        for column in ["flow_tx_m", "flow_ty_m", "flow_tz_m", "is_valid"] {
+            assert!(text.contains(column), "{column} missing from the feather schema");
+        }
+    } else {
+        assert_eq!(response.status(), 501);
+    }
+    let (status, problem) = s.get("/v1/jobs/{id}/labels", &format!("/v1/jobs/{job}/labels?format=csv")).await;
+    assert_eq!((status, problem["parameter"].as_str()), (422, Some("format")));
+
+    // Cancelling a finished job is a conflict; deleting the sequence removes its jobs.
+    let (status, _) = s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{job}/cancel"), &json!({})).await;
+    assert_eq!(status, 409);
+    let (status, _) =
+        s.send("DELETE", "/v1/sequences/{id}", s.request(Method::DELETE, &format!("/v1/sequences/{id}"))).await;
+    assert_eq!(status, 204);
+    assert_eq!(s.get("/v1/sequences/{id}", &format!("/v1/sequences/{id}")).await.0, 404);
+    assert_eq!(s.get("/v1/jobs/{id}", &format!("/v1/jobs/{job}")).await.0, 404);
+}
+
+#[tokio::test]
+async fn multipart_uploads_read_every_frame_format_with_meta() {
+    let s = TestServer::start().await;
+    let f = frames(3, 200);
+    let mut kitti = Vec::new();
+    for p in &f[2] {
+        for c in p.iter().chain(&[0.5f32]) {
+            kitti.extend(c.to_le_bytes());
+        }
+    }
+    let form = Form::new()
+        .part(
+            "meta",
+            Part::text(r#"{"name": "files", "timestamps": [0.0, 0.1, 0.25]}"#).mime_str("application/json").unwrap(),
+        )
+        .part("frame", Part::bytes(npy_bytes(&f[0])).file_name("000.npy"))
+        .part("frame", Part::bytes(ply_bytes(&f[1])).file_name("001.ply"))
+        .part("frame", Part::bytes(kitti).file_name("002.bin"));
+    let (status, seq) = s.send("POST", "/v1/sequences", s.request(Method::POST, "/v1/sequences").multipart(form)).await;
+    assert_eq!(status, 201, "{seq}");
+    assert_eq!(seq["points_per_frame"], json!([200, 200, 200]));
+    assert_eq!(seq["timestamps"], json!([0.0, 0.1, 0.25]));
+    assert_eq!(seq["name"], "files");
+    // The frames are stored exactly: a fitted job's frame query at the frame's time gives them back.
+    let job = s.submit(seq["id"].as_str().unwrap(), "ntp").await;
+    s.wait_status(&job, "succeeded").await;
+    let (_, answer) = s
+        .post_json(
+            "/v1/jobs/{id}/query",
+            &format!("/v1/jobs/{job}/query"),
+            &json!({ "frame": 2, "indices": [7], "times": [0.25] }),
+        )
+        .await;
+    assert!((answer["positions"][0][0][1].as_f64().unwrap() - f[2][7][1] as f64).abs() < 1e-5, "{answer}");
+}
+
+async fn upload_problem(s: &TestServer, request: reqwest::RequestBuilder) -> (u16, Value) {
+    s.send("POST", "/v1/sequences", request).await
+}
+
+#[tokio::test]
+async fn bad_uploads_are_problems_that_say_what_is_wrong() {
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_frames: 4, max_points_per_frame: 500, ..Limits::default() },
+        ..Options::default()
+    })
+    .await;
+    let post = || s.request(Method::POST, "/v1/sequences");
+    let f = frames(2, 50);
+    // Malformed frame file.
+    let form = Form::new().part("frame", Part::bytes(npy_bytes(&f[0])).file_name("a.npy")).part(
+        "frame",
+        Part::bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n".to_vec()).file_name("b.ply"),
+    );
+    let (status, p) = upload_problem(&s, post().multipart(form)).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("frame")), "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("frame 1"), "{p}");
+    // Unknown format.
+    let form = Form::new().part("frame", Part::bytes(vec![1, 2, 3]).file_name("a.xyz"));
+    assert_eq!(upload_problem(&s, post().multipart(form)).await.0, 422);
+    // Unknown part.
+    let form = Form::new().part("frames", Part::bytes(npy_bytes(&f[0])));
+    let (status, p) = upload_problem(&s, post().multipart(form)).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("frames")));
+    // NaN in a JSON frame (as Python's json.dumps writes it), and a number beyond f32.
+    let body = r#"{"frames": [[[0, 0, 0]], [[1, NaN, 0]]]}"#;
+    let (status, p) = upload_problem(&s, post().header("content-type", "application/json").body(body)).await;
+    assert_eq!(status, 422, "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("non-finite"), "{p}");
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": [[[0, 0, 0]], [[1e39, 0, 0]]] }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("frames")), "{p}");
+    // NaN in a frame file.
+    let mut bad = f[1].clone();
+    bad[3][2] = f32::NAN;
+    let form = Form::new()
+        .part("frame", Part::bytes(npy_bytes(&f[0])).file_name("a.npy"))
+        .part("frame", Part::bytes(npy_bytes(&bad)).file_name("b.npy"));
+    assert_eq!(upload_problem(&s, post().multipart(form)).await.0, 422);
+    // Empty frame; a single frame; no frames key.
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": [[[0, 0, 0]], []] }))).await;
+    assert_eq!(status, 422);
+    assert!(p["detail"].as_str().unwrap().contains("frame 1 has no points"), "{p}");
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": [[[0, 0, 0]]] }))).await;
+    assert!(status == 422 && p["detail"].as_str().unwrap().contains("at least 2 frames"), "{p}");
+    let (status, p) = upload_problem(&s, post().json(&json!({ "name": "x" }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("frames")), "{p}");
+    // Unknown field, malformed JSON, bad timestamps, bad poses.
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": f, "colour": 1 }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("colour")));
+    let (status, p) =
+        upload_problem(&s, post().header("content-type", "application/json").body("{\"frames\": [")).await;
+    assert_eq!((status, p["type"].as_str()), (400, Some("urn:mbnt:problem:bad-request")));
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": f, "timestamps": [0.0] }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("timestamps")));
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": f, "timestamps": [1.0, 1.0] }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("timestamps")));
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": f, "poses": vec![vec![1.0f64; 16]] }))).await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("poses")));
+    // Wrong or missing content type.
+    let (status, p) = upload_problem(&s, post().header("content-type", "text/csv").body("1,2,3")).await;
+    assert_eq!((status, p["type"].as_str()), (415, Some("urn:mbnt:problem:unsupported-media-type")));
+    assert_eq!(upload_problem(&s, post().body("{}")).await.0, 415);
+    // Limits: frames and points per frame.
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": frames(5, 10) }))).await;
+    assert_eq!((status, p["limit"].as_str()), (422, Some("max_frames")), "{p}");
+    let (status, p) = upload_problem(&s, post().json(&json!({ "frames": frames(2, 501) }))).await;
+    assert_eq!((status, p["limit"].as_str()), (422, Some("max_points_per_frame")), "{p}");
+    let form = Form::new().part("frame", Part::bytes(npy_bytes(&frames(1, 501)[0])).file_name("a.npy"));
+    let (status, p) = upload_problem(&s, post().multipart(form)).await;
+    assert_eq!((status, p["limit"].as_str()), (422, Some("max_points_per_frame")), "{p}");
+    // Nothing of the failed uploads was kept.
+    let (_, list) = s.get("/v1/sequences", "/v1/sequences").await;
+    assert_eq!(list["sequences"], json!([]));
+    for sub in ["staging", "tmp", "sequences"] {
+        assert_eq!(std::fs::read_dir(s.dir().join(sub)).unwrap().count(), 0, "{sub} is not empty");
+    }
+}
+
+#[tokio::test]
+async fn bodies_over_the_configured_limit_are_413_whether_sized_or_streamed() {
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_body_bytes: 2_000, max_json_bytes: 1_000, ..Limits::default() },
+        ..Options::default()
+    })
+    .await;
+    let f = frames(2, 200);
+    // Content-Length known up front.
+    let (status, p) = s.post_json("/v1/sequences", "/v1/sequences", &json!({ "frames": f })).await;
+    assert_eq!((status, p["type"].as_str()), (413, Some("urn:mbnt:problem:body-too-large")), "{p}");
+    // Streamed without a length (chunked): the limit applies while reading.
+    let chunks: Vec<Result<Vec<u8>, std::io::Error>> =
+        serde_json::to_vec(&json!({ "frames": f })).unwrap().chunks(500).map(|c| Ok(c.to_vec())).collect();
+    let body = reqwest::Body::wrap_stream(futures_util::stream::iter(chunks));
+    let request = s.request(Method::POST, "/v1/sequences").header("content-type", "application/json").body(body);
+    let (status, _) = s.send("POST", "/v1/sequences", request).await;
+    assert_eq!(status, 413);
+    let form = Form::new()
+        .part("frame", Part::stream(npy_bytes(&f[0])).file_name("a.npy"))
+        .part("frame", Part::stream(npy_bytes(&f[1])).file_name("b.npy"));
+    let (status, _) = s.send("POST", "/v1/sequences", s.request(Method::POST, "/v1/sequences").multipart(form)).await;
+    assert_eq!(status, 413);
+    // The smaller JSON limit of the job routes.
+    let big = json!({ "sequence_id": "x".repeat(1_500) });
+    let (status, _) = s.post_json("/v1/jobs", "/v1/jobs", &big).await;
+    assert_eq!(status, 413);
+}
+
+#[tokio::test]
+async fn bad_job_requests_name_the_parameter() {
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_iterations: 50, ..Limits::default() },
+        ..Options::default()
+    })
+    .await;
+    let seq = s.upload(&frames(2, 50), None).await;
+    let few = json!({ "iterations": 5 });
+    let cases = [
+        (json!({ "sequence_id": uuid::Uuid::new_v4(), "params": few }), "sequence_id"),
+        (json!({ "sequence_id": "not-a-uuid", "params": few }), "sequence_id"),
+        (json!({ "sequence_id": seq, "method": "magic" }), "method"),
+        (json!({ "sequence_id": seq, "params": { "learning_rate": -1.0 } }), "params.learning_rate"),
+        (json!({ "sequence_id": seq, "params": { "hidden_layers": 0 } }), "params.hidden_layers"),
+        (json!({ "sequence_id": seq, "params": { "bogus": 1 } }), "params.bogus"),
+        (json!({ "sequence_id": seq, "params": { "iterations": "many" } }), "params"),
+        (json!({ "sequence_id": seq, "colour": "red" }), "colour"),
+        (json!({ "method": "ntp" }), "sequence_id"),
+    ];
+    for (body, parameter) in cases {
+        let (status, p) = s.post_json("/v1/jobs", "/v1/jobs", &body).await;
+        assert_eq!((status, p["parameter"].as_str()), (422, Some(parameter)), "{body} -> {p}");
+    }
+    let (status, p) =
+        s.post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "params": { "iterations": 51 } })).await;
+    assert_eq!((status, p["limit"].as_str()), (422, Some("max_iterations")), "{p}");
+    let request = s.request(Method::POST, "/v1/jobs").header("content-type", "text/plain").body("{}");
+    assert_eq!(s.send("POST", "/v1/jobs", request).await.0, 415);
+    let request =
+        s.request(Method::POST, "/v1/jobs").header("content-type", "application/json").body("{\"sequence_id\": ");
+    assert_eq!(s.send("POST", "/v1/jobs", request).await.0, 400);
+    let (status, p) = s.get("/v1/jobs", "/v1/jobs?status=done").await;
+    assert_eq!((status, p["parameter"].as_str()), (422, Some("status")));
+}
+
+#[tokio::test]
+async fn unknown_ids_are_404_on_every_route_with_an_id() {
+    let s = TestServer::start().await;
+    for id in [uuid::Uuid::new_v4().to_string(), "not-a-uuid".to_string()] {
+        for route in ROUTES.iter().filter(|r| r.path.contains("{id}")) {
+            let path = route.path.replace("{id}", &id);
+            let method = Method::from_bytes(route.method.as_bytes()).unwrap();
+            let mut request = s.request(method, &path);
+            if route.method == "POST" {
+                request = request.json(&json!({ "times": [0.0], "frame": 0 }));
+            }
+            let (status, p) = s.send(route.method, route.path, request).await;
+            assert_eq!((status, p["type"].as_str()), (404, Some("urn:mbnt:problem:not-found")), "{route:?}");
+        }
+    }
+}
+
+#[tokio::test]
+async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_query_points: 10, max_query_times: 3, ..Limits::default() },
+        ..slow(2_000, 5)
+    })
+    .await;
+    let seq = s.upload(&frames(3, 40), None).await;
+    let running = s.submit(&seq, "ntp").await;
+    let queued = s.submit(&seq, "ntp").await;
+    s.wait_status(&running, "running").await;
+    for job in [&running, &queued] {
+        let (status, p) = s
+            .post_json("/v1/jobs/{id}/query", &format!("/v1/jobs/{job}/query"), &json!({ "frame": 0, "times": [0.0] }))
+            .await;
+        assert_eq!(status, 409, "{p}");
+        let (status, _) = s.get("/v1/jobs/{id}/labels", &format!("/v1/jobs/{job}/labels")).await;
+        assert_eq!(status, 409);
+    }
+    // Cancel both: the queued one at once, the running one at its next iteration.
+    let (status, j) = s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{queued}/cancel"), &json!({})).await;
+    assert_eq!((status, j["status"].as_str()), (202, Some("cancelled")));
+    let (status, j) = s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{running}/cancel"), &json!({})).await;
+    assert_eq!((status, j["cancel_requested"].as_bool()), (202, Some(true)));
+    let cancelled = s.wait_status(&running, "cancelled").await;
+    assert!(cancelled["finished_at"].is_string());
+    assert_eq!(s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{running}/cancel"), &json!({})).await.0, 202);
+
+    // A job that succeeds quickly: the slow fitter's steps are the worker's; use a fresh
+    // server with the real fitter on the same data.
+    let dir = s.stop().await;
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_query_points: 10, max_query_times: 3, ..Limits::default() },
+        dir: Some(dir.clone()),
+        ..Options::default()
+    })
+    .await;
+    let job = s.submit(&seq, "ntp").await;
+    s.wait_status(&job, "succeeded").await;
+    let q = |body: Value| {
+        let path = format!("/v1/jobs/{job}/query");
+        let s = &s;
+        async move { s.post_json("/v1/jobs/{id}/query", &path, &body).await }
+    };
+    let cases = [
+        (json!({ "frame": 0, "indices": [0], "times": [5.0] }), "times"),
+        (json!({ "frame": 0, "indices": [0], "times": [] }), "times"),
+        (json!({ "frame": 3, "indices": [0], "times": [0.0] }), "frame"),
+        (json!({ "frame": 0, "indices": [40], "times": [0.0] }), "indices"),
+        (json!({ "frame": 0, "indices": [0], "t": 0.0, "times": [0.0] }), "t"),
+        (json!({ "points": [[0, 0, 0]], "times": [0.0] }), "t"),
+        (json!({ "points": [[0, 0, 0]], "t": -1.0, "times": [0.0] }), "t"),
+        (json!({ "points": [[1e39, 0, 0]], "t": 0.0, "times": [0.0] }), "points"),
+        (json!({ "times": [0.0] }), "frame"),
+        (json!({ "frame": 0 }), "times"),
+        (json!({ "frame": 0, "times": [0.0], "speed": 1 }), "speed"),
+    ];
+    for (body, parameter) in cases {
+        let (status, p) = q(body.clone()).await;
+        assert_eq!((status, p["parameter"].as_str()), (422, Some(parameter)), "{body} -> {p}");
+    }
+    let request = s
+        .request(Method::POST, &format!("/v1/jobs/{job}/query"))
+        .header("content-type", "application/json")
+        .body(r#"{"points": [[0, NaN, 0]], "t": 0, "times": [0]}"#);
+    let (status, p) = s.send("POST", "/v1/jobs/{id}/query", request).await;
+    assert_eq!(status, 422, "{p}");
+    for (body, limit) in [
+        (json!({ "frame": 0, "times": [0.0] }), "max_query_points"),
+        (json!({ "points": vec![[0.0, 0.0, 0.0]; 11], "t": 0.0, "times": [0.0] }), "max_query_points"),
+        (json!({ "frame": 0, "indices": [0], "times": [0.0, 0.5, 1.0, 2.0] }), "max_query_times"),
+    ] {
+        let (status, p) = q(body.clone()).await;
+        assert_eq!((status, p["limit"].as_str()), (422, Some(limit)), "{body} -> {p}");
+    }
+    let (status, a) = q(json!({ "frame": 0, "indices": [1, 2], "times": [0.0, 0.5, 2.0] })).await;
+    assert_eq!(status, 200, "{a}");
+    drop(s);
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[tokio::test]
+async fn a_sequence_with_an_active_job_cannot_be_deleted() {
+    let s = TestServer::start_with(slow(100_000, 5)).await;
+    let seq = s.upload(&frames(2, 30), None).await;
+    let job = s.submit(&seq, "ntp").await;
+    let path = format!("/v1/sequences/{seq}");
+    let (status, p) = s.send("DELETE", "/v1/sequences/{id}", s.request(Method::DELETE, &path)).await;
+    assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:conflict")));
+    s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{job}/cancel"), &json!({})).await;
+    s.wait_status(&job, "cancelled").await;
+    assert_eq!(s.send("DELETE", "/v1/sequences/{id}", s.request(Method::DELETE, &path)).await.0, 204);
+}
+
+#[tokio::test]
+async fn the_event_stream_reports_progress_and_ends_with_the_final_state() {
+    let s = TestServer::start_with(slow(50, 20)).await;
+    let seq = s.upload(&frames(2, 30), None).await;
+    let job = s.submit(&seq, "ntp").await;
+    let response = s.request(Method::GET, &format!("/v1/jobs/{job}/events")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(response.headers()["content-type"], "text/event-stream");
+    let events = read_events(response, Duration::from_secs(60)).await;
+    let (last_name, last) = events.last().unwrap();
+    assert_eq!((last_name.as_str(), last["status"].as_str()), ("end", Some("succeeded")));
+    assert!(
+        events
+            .iter()
+            .any(|(n, j)| n == "progress" && j["status"] == "running" && j["progress"]["iteration"].as_u64() > Some(0))
+    );
+    for (_, j) in &events {
+        let mut errors = Vec::new();
+        s.spec.validate(&json!({ "$ref": "#/components/schemas/Job" }), j, "$", &mut errors);
+        assert!(errors.is_empty(), "{errors:?}");
+    }
+    // A finished job's stream is its final state, then the end.
+    let response = s.request(Method::GET, &format!("/v1/jobs/{job}/events")).send().await.unwrap();
+    let events = read_events(response, Duration::from_secs(10)).await;
+    assert_eq!(events.len(), 1);
+    assert_eq!(events[0].0, "end");
+}
+
+#[tokio::test]
+async fn a_job_interrupted_by_a_restart_runs_again_and_the_sequence_is_intact() {
+    let s = TestServer::start_with(slow(100_000, 5)).await;
+    let f = frames(3, 100);
+    let seq = s.upload(&f, Some(vec![0.0, 0.1, 0.2])).await;
+    let (_, before) = s.get("/v1/sequences/{id}", &format!("/v1/sequences/{seq}")).await;
+    let job = s.submit(&seq, "ntp").await;
+    // Wait for persisted progress (written about once a second), then stop mid-fit.
+    let running = s.wait_job(&job, Duration::from_secs(30), |j| j["progress"]["iteration"].as_u64() > Some(0)).await;
+    assert_eq!(running["status"], "running");
+    let dir = s.stop().await;
+    // The stop put the job back in the queue; make the database look as after a crash
+    // (kill -9 mid-fit: the row still says running), which the next start must recover.
+    let db = rusqlite::Connection::open(dir.join("mbnt.sqlite3")).unwrap();
+    let status: String = db.query_row("SELECT status FROM jobs WHERE id = ?1", [&job], |r| r.get(0)).unwrap();
+    assert_eq!(status, "queued");
+    assert_eq!(db.execute("UPDATE jobs SET status = 'running' WHERE id = ?1", [&job]).unwrap(), 1);
+    drop(db);
+
+    let s = TestServer::start_with(Options { dir: Some(dir.clone()), ..Options::default() }).await;
+    let done = s.wait_status(&job, "succeeded").await;
+    assert_eq!(done["attempts"], 2);
+    let (_, after) = s.get("/v1/sequences/{id}", &format!("/v1/sequences/{seq}")).await;
+    assert_eq!(before, after);
+    let (status, a) = s
+        .post_json(
+            "/v1/jobs/{id}/query",
+            &format!("/v1/jobs/{job}/query"),
+            &json!({ "frame": 2, "indices": [99], "times": [0.2] }),
+        )
+        .await;
+    assert_eq!(status, 200, "{a}");
+    for c in 0..3 {
+        assert!((a["positions"][0][0][c].as_f64().unwrap() - f[2][99][c] as f64).abs() < 1e-5, "{a}");
+    }
+    drop(s);
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[tokio::test]
+async fn metrics_count_jobs_by_status_and_fit_iterations() {
+    let s = TestServer::start().await;
+    let seq = s.upload(&frames(2, 30), None).await;
+    let job = s.submit(&seq, "nsfp").await;
+    s.wait_status(&job, "succeeded").await;
+    let text = s.client.get(s.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(text.contains("mbnt_jobs{status=\"succeeded\"} 1"), "{text}");
+    let iterations: u64 =
+        text.lines().find_map(|l| l.strip_prefix("mbnt_fit_iterations_total ")).and_then(|v| v.parse().ok()).unwrap();
+    assert!(iterations > 0);
+    assert!(text.contains("route=\"/v1/jobs/{id}\""), "latency is keyed by route template: {text}");
+}
+
+/// Replaces `{{name}}` with captured values in every string of `v`.
+fn substitute(v: &Value, vars: &std::collections::HashMap<String, String>) -> Value {
+    match v {
+        Value::String(s) => {
+            let mut s = s.clone();
+            for (k, val) in vars {
+                s = s.replace(&format!("{{{{{k}}}}}"), val);
+            }
+            Value::String(s)
+        }
+        Value::Array(a) => Value::Array(a.iter().map(|x| substitute(x, vars)).collect()),
+        Value::Object(o) => Value::Object(o.iter().map(|(k, x)| (k.clone(), substitute(x, vars))).collect()),
+        other => other.clone(),
+    }
+}
+
+/// Whether `actual` has every field of `expected` with the same value (`"*"` matches anything
+/// present; arrays compare element-wise).
+fn contains(actual: &Value, expected: &Value) -> bool {
+    match (actual, expected) {
+        (_, Value::String(s)) if s == "*" => !actual.is_null(),
+        (Value::Object(a), Value::Object(e)) => e.iter().all(|(k, ev)| a.get(k).is_some_and(|av| contains(av, ev))),
+        (Value::Array(a), Value::Array(e)) => a.len() == e.len() && a.iter().zip(e).all(|(x, y)| contains(x, y)),
+        _ => actual == expected,
+    }
+}
+
+#[tokio::test]
+async fn the_api_examples_replay() {
+    let s = TestServer::start().await;
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("api");
+    let mut files: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
+    files.retain(|p| p.extension().is_some_and(|e| e == "json"));
+    files.sort();
+    assert!(files.len() >= 10, "api/ holds the examples");
+    let mut vars = std::collections::HashMap::new();
+    for file in files {
+        let name = file.file_name().unwrap().to_string_lossy().to_string();
+        let example: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+        let example = substitute(&example, &vars);
+        let req = &example["request"];
+        let method = req["method"].as_str().unwrap();
+        let path = req["path"].as_str().unwrap();
+        let template = req["route"].as_str().unwrap();
+        let mut request = s.request(Method::from_bytes(method.as_bytes()).unwrap(), path);
+        if let Some(body) = req.get("body") {
+            request = request.json(body);
+        }
+        if let Some(raw) = req.get("raw_body").and_then(Value::as_str) {
+            request = request.body(raw.to_string());
+        }
+        for (k, v) in req.get("headers").and_then(Value::as_object).into_iter().flatten() {
+            request = request.header(k.as_str(), v.as_str().unwrap());
+        }
+        let expected = &example["response"];
+        let (status, body) = if let Some(until) = example.get("wait_until") {
+            let (field, value) = (until["field"].as_str().unwrap(), &until["equals"]);
+            let id = path.rsplit('/').next().unwrap();
+            let job = s.wait_job(id, Duration::from_secs(60), |j| j.pointer(field) == Some(value)).await;
+            (200, job)
+        } else {
+            s.send(method, template, request).await
+        };
+        assert_eq!(status, expected["status"].as_u64().unwrap() as u16, "{name}: {body}");
+        if let Some(e) = expected.get("body") {
+            assert!(contains(&body, e), "{name}: {body} does not contain {e}");
+        }
+        for (var, pointer) in expected.get("capture").and_then(Value::as_object).into_iter().flatten() {
+            let value = body.pointer(pointer.as_str().unwrap()).and_then(Value::as_str).unwrap();
+            vars.insert(var.clone(), value.to_string());
+        }
+    }
+}
+
+#[tokio::test]
+async fn shutdown_ends_open_event_streams_and_requeues_the_running_job() {
+    let s = TestServer::start_with(slow(100_000, 5)).await;
+    let seq = s.upload(&frames(2, 30), None).await;
+    let job = s.submit(&seq, "ntp").await;
+    s.wait_status(&job, "running").await;
+    let events = s.request(Method::GET, &format!("/v1/jobs/{job}/events")).send().await.unwrap();
+    assert_eq!(events.status(), 200);
+    // A graceful shutdown must not wait for the stream's client to hang up.
+    let dir = tokio::time::timeout(Duration::from_secs(20), s.stop()).await.expect("shutdown completes");
+    let s = TestServer::start_with(Options {
+        dir: Some(dir.clone()),
+        fitter: Arc::new(SlowFitter { steps: 100_000, step: Duration::from_millis(5) }),
+        workers: 1,
+        ..Options::default()
+    })
+    .await;
+    let (_, j) = s.get("/v1/jobs/{id}", &format!("/v1/jobs/{job}")).await;
+    assert!(j["status"] == "queued" || j["status"] == "running", "{j}");
+    drop(events);
+    s.stop().await;
+    let _ = std::fs::remove_dir_all(dir);
+}
