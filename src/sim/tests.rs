@@ -198,8 +198,9 @@ fn point_counts_per_frame_are_in_the_expected_range() {
         let total = s.points_per_frame[k];
         let non_ground = total - s.ground_points_per_frame[k];
         assert_eq!(total, seq.frames[k].len());
-        assert!((40_000..=56_000).contains(&total), "frame {k}: {total} points");
-        assert!((24_000..=36_000).contains(&non_ground), "frame {k}: {non_ground} non-ground points");
+        // 0.2 -> 0.14 degree azimuth step scaled the counts measured at 0.2 (40k-56k, 24k-36k) by 1.43.
+        assert!((57_000..=80_000).contains(&total), "frame {k}: {total} points");
+        assert!((34_000..=52_000).contains(&non_ground), "frame {k}: {non_ground} non-ground points");
     }
     assert!(s.dynamic_point_share > 0.0 && s.dynamic_point_share < 0.5);
 }
