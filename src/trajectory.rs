@@ -9,6 +9,7 @@ use crate::fit::Method;
 use crate::fit::encoding::encode_points;
 use crate::fit::prepare::FrameReport;
 use crate::geometry::Point;
+use crate::geometry::rigid::Rigid;
 use crate::nn::{Mlp, Workspace};
 
 /// Maps the sequence's time axis to fractional frame indices, piecewise linearly.
@@ -125,6 +126,9 @@ pub struct FittedModel {
     time_axis: TimeAxis,
     report: FitReport,
     motion: Motion,
+    /// Per frame, sensor coordinates -> the fit's frame (frame 0's sensor coordinates with the
+    /// ego motion removed), when the fit used poses. None: the fit worked in sensor coordinates.
+    frame_poses: Option<Vec<Rigid>>,
 }
 
 /// Query points are evaluated in chunks of this many, bounding memory for large queries.
@@ -132,8 +136,14 @@ const QUERY_CHUNK: usize = 16_384;
 
 impl FittedModel {
     /// A model from a fitted trajectory network.
-    pub(crate) fn trajectory(method: Method, time_axis: TimeAxis, report: FitReport, mlp: Mlp<f32>) -> Self {
-        Self { method, time_axis, report, motion: Motion::Trajectory(mlp) }
+    pub(crate) fn trajectory(
+        method: Method,
+        time_axis: TimeAxis,
+        report: FitReport,
+        mlp: Mlp<f32>,
+        frame_poses: Option<Vec<Rigid>>,
+    ) -> Self {
+        Self { method, time_axis, report, motion: Motion::Trajectory(mlp), frame_poses }
     }
 
     /// A model from fitted pair flows.
@@ -143,8 +153,9 @@ impl FittedModel {
         report: FitReport,
         forward: Vec<Mlp<f32>>,
         backward: Vec<Mlp<f32>>,
+        frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
-        Self { method, time_axis, report, motion: Motion::PairFlows { forward, backward } }
+        Self { method, time_axis, report, motion: Motion::PairFlows { forward, backward }, frame_poses }
     }
 
     /// The method that produced the model.
@@ -178,11 +189,30 @@ impl FittedModel {
             return Ok(out);
         }
         let frames = self.time_axis.frames();
+        // With poses, queries go into the fit's frame and answers come back into the sensor
+        // frame of each queried time.
+        let moved_in;
+        let points = match &self.frame_poses {
+            Some(poses) => {
+                let to_fit = pose_at(poses, u_obs);
+                moved_in = points.iter().map(|p| to_fit.apply(p)).collect::<Vec<_>>();
+                &moved_in[..]
+            }
+            None => points,
+        };
         for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * times.len())) {
             match &self.motion {
                 Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, &u_times, out_chunk),
                 Motion::PairFlows { forward, backward } => {
                     euler_positions(forward, backward, chunk, u_obs, &u_times, out_chunk)
+                }
+            }
+        }
+        if let Some(poses) = &self.frame_poses {
+            let to_sensor: Vec<Rigid> = u_times.iter().map(|&u| pose_at(poses, u).inverse()).collect();
+            for row in out.chunks_mut(times.len()) {
+                for (p, back) in row.iter_mut().zip(&to_sensor) {
+                    *p = back.apply(p);
                 }
             }
         }
@@ -216,6 +246,7 @@ impl FittedModel {
             report: self.report.clone(),
             kind: kind.to_string(),
             networks: networks.len(),
+            frame_poses: self.frame_poses.clone(),
         };
         let header = serde_json::to_vec(&header).expect("a header always serialises");
         let mut out = MODEL_MAGIC.to_vec();
@@ -265,7 +296,16 @@ impl FittedModel {
                 ));
             }
         };
-        Ok(Self { method: header.method, time_axis: header.time_axis, report: header.report, motion })
+        if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
+            return Err("model header: one pose per frame expected".into());
+        }
+        Ok(Self {
+            method: header.method,
+            time_axis: header.time_axis,
+            report: header.report,
+            motion,
+            frame_poses: header.frame_poses,
+        })
     }
 }
 
@@ -277,6 +317,9 @@ struct Header {
     report: FitReport,
     kind: String,
     networks: usize,
+    /// Absent in models fitted without poses.
+    #[serde(default)]
+    frame_poses: Option<Vec<Rigid>>,
 }
 
 /// Trajectory position at fractional frame index `u` from one point's velocity row: the
@@ -377,12 +420,68 @@ fn euler_positions(
     }
 }
 
+/// The sensor-to-fit-frame transform at fractional frame index `u`: between two frames the
+/// rotation turns at a constant rate about one axis and the translation moves linearly.
+fn pose_at(poses: &[Rigid], u: f64) -> Rigid {
+    let k = (u.max(0.0).floor() as usize).min(poses.len() - 1);
+    let a = u - k as f64;
+    if k + 1 >= poses.len() || a <= 0.0 {
+        return poses[k];
+    }
+    let (p, q) = (&poses[k], &poses[k + 1]);
+    // Relative rotation D = Rp^T Rq as axis and angle, scaled by `a` (Rodrigues).
+    let d: [[f64; 3]; 3] =
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[c][i] * q.rotation[c][j]).sum()));
+    let cos = ((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
+    let angle = cos.acos();
+    let partial = if angle < 1e-12 {
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    } else {
+        let s = 2.0 * angle.sin();
+        let axis = [(d[2][1] - d[1][2]) / s, (d[0][2] - d[2][0]) / s, (d[1][0] - d[0][1]) / s];
+        let theta = a * angle;
+        let k = [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]];
+        let k2: [[f64; 3]; 3] =
+            std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| k[i][c] * k[c][j]).sum()));
+        std::array::from_fn(|i| {
+            std::array::from_fn(|j| {
+                f64::from(u8::from(i == j)) + theta.sin() * k[i][j] + (1.0 - theta.cos()) * k2[i][j]
+            })
+        })
+    };
+    let rotation =
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[i][c] * partial[c][j]).sum()));
+    let translation = std::array::from_fn(|c| (1.0 - a) * p.translation[c] + a * q.translation[c]);
+    Rigid { rotation, translation }
+}
+
 /// File magic and format version of serialised models.
 const MODEL_MAGIC: &[u8] = b"MBNTMDL1";
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn poses_interpolate_by_constant_turn_rate_and_linear_translation() {
+        let yaw = |a: f64| Rigid {
+            rotation: [[a.cos(), -a.sin(), 0.0], [a.sin(), a.cos(), 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.0; 3],
+        };
+        let mut end = yaw(std::f64::consts::FRAC_PI_2);
+        end.translation = [2.0, 4.0, -2.0];
+        let poses = [Rigid::identity(), end];
+        let mid = pose_at(&poses, 0.5);
+        let expected = yaw(std::f64::consts::FRAC_PI_4);
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((mid.rotation[i][j] - expected.rotation[i][j]).abs() < 1e-12, "{mid:?}");
+            }
+        }
+        assert_eq!(mid.translation, [1.0, 2.0, -1.0]);
+        assert_eq!(pose_at(&poses, 1.0), end);
+        assert_eq!(pose_at(&poses, 0.0), Rigid::identity());
+    }
 
     #[test]
     fn timestamps_map_piecewise_linearly_to_frame_indices() {

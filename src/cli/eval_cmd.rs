@@ -78,6 +78,9 @@ pub struct Labelled {
     pub is_ground: Vec<Vec<bool>>,
     /// Dynamic flags of frame 0's points.
     pub dynamic_0: Vec<bool>,
+    /// Sensor-to-world poses (row-major 4 x 4), when known; fits use them unless
+    /// `{"use_poses": false}` is passed in the parameters.
+    pub poses: Option<Vec<[f64; 16]>>,
 }
 
 impl Labelled {
@@ -92,6 +95,7 @@ impl Labelled {
             end_positions: sim.positions_at(0, t - 1)?,
             is_ground: sim.truth.iter().map(|f| f.iter().map(|p| p.is_ground).collect()).collect(),
             dynamic_0: sim.is_dynamic(0)?,
+            poses: Some(sim.ego_poses.clone()),
         })
     }
 
@@ -135,6 +139,18 @@ impl Labelled {
             })
             .collect();
         let dynamic_0 = as_bool(array("is_dynamic_000")?).context("is_dynamic must be bool")?;
+        let poses = match std::fs::read_to_string(dir.join("poses.txt")) {
+            Ok(text) => Some(
+                text.lines()
+                    .filter(|l| !l.trim().is_empty())
+                    .map(|l| {
+                        let v: Vec<f64> = l.split_whitespace().map(str::parse).collect::<Result<_, _>>()?;
+                        <[f64; 16]>::try_from(v).map_err(|_| anyhow::anyhow!("poses.txt: 16 numbers per line expected"))
+                    })
+                    .collect::<anyhow::Result<Vec<_>>>()?,
+            ),
+            Err(_) => None,
+        };
         Ok(Labelled {
             name: dir.display().to_string(),
             frames,
@@ -143,6 +159,7 @@ impl Labelled {
             end_positions,
             is_ground,
             dynamic_0,
+            poses,
         })
     }
 }
@@ -234,7 +251,8 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
 
 fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<Prediction> {
     let params = params.check(method)?;
-    let sequence = Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: None };
+    let sequence =
+        Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: sim.poses.clone() };
     let mut last_print = std::time::Instant::now();
     let model = fit_sequence(&sequence, method, &params, &mut |p| {
         if last_print.elapsed().as_secs_f64() > 10.0 {

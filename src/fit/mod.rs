@@ -15,6 +15,7 @@ pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidF
 use std::ops::ControlFlow;
 
 use crate::geometry::Point;
+use crate::geometry::rigid::Rigid;
 use crate::trajectory::{FitReport, FittedModel, TimeAxis};
 
 /// A sequence to fit: T frames of points, each in its own sensor frame, and its time axis.
@@ -117,7 +118,12 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let (frames, frame_reports) = prepare::prepare_frames(sequence, params, method.uses_rigidity(), true)?;
+    let frame_poses = match (&sequence.poses, params.use_poses) {
+        (Some(poses), true) => Some(poses_relative_to_first(poses)?),
+        _ => None,
+    };
+    let (frames, frame_reports) =
+        prepare::prepare_frames(sequence, params, method.uses_rigidity(), true, frame_poses.as_deref())?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
     let model = if method.is_trajectory() {
         let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;
@@ -126,15 +132,48 @@ pub fn fit_sequence(
         report.best_validation_loss = Some(fit.best_validation_loss);
         report.phase_times = fit.times;
         report.fit_seconds = started.elapsed().as_secs_f64();
-        FittedModel::trajectory(method, sequence.time_axis(), report, fit.mlp)
+        FittedModel::trajectory(method, sequence.time_axis(), report, fit.mlp, frame_poses)
     } else {
         let fit = nsfp::fit_pairs(&frames, params, method.uses_rigidity(), on_progress)?;
         report.iterations = fit.iterations_per_pair.iter().sum();
         report.iterations_per_pair = fit.iterations_per_pair;
         report.fit_seconds = started.elapsed().as_secs_f64();
-        FittedModel::pair_flows(method, sequence.time_axis(), report, fit.forward, fit.backward)
+        FittedModel::pair_flows(method, sequence.time_axis(), report, fit.forward, fit.backward, frame_poses)
     };
     Ok(model)
+}
+
+/// Converts sensor-to-world poses (row-major 4 x 4) into transforms from each frame's sensor
+/// coordinates to frame 0's: the frame a pose-compensated fit works in.
+pub fn poses_relative_to_first(poses: &[[f64; 16]]) -> Result<Vec<Rigid>, FitError> {
+    let rigid = |k: usize, m: &[f64; 16]| -> Result<Rigid, FitError> {
+        let bad = |why: &str| FitError::InvalidSequence(format!("pose {k} is not a rigid transform: {why}"));
+        if m.iter().any(|v| !v.is_finite()) {
+            return Err(bad("non-finite entry"));
+        }
+        if m[12].abs() > 1e-6 || m[13].abs() > 1e-6 || m[14].abs() > 1e-6 || (m[15] - 1.0).abs() > 1e-6 {
+            return Err(bad("last row must be 0 0 0 1"));
+        }
+        let rotation = [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]];
+        for i in 0..3 {
+            for j in 0..3 {
+                let dot: f64 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
+                if (dot - f64::from(u8::from(i == j))).abs() > 1e-3 {
+                    return Err(bad("rotation block is not orthonormal"));
+                }
+            }
+        }
+        let r = &rotation;
+        let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+        if det <= 0.0 {
+            return Err(bad("rotation block is a reflection"));
+        }
+        Ok(Rigid { rotation, translation: [m[3], m[7], m[11]] })
+    };
+    let world = poses.iter().enumerate().map(|(k, m)| rigid(k, m)).collect::<Result<Vec<_>, _>>()?;
+    let to_first = world[0].inverse();
+    Ok(world.iter().map(|w| to_first.compose(w)).collect())
 }
 
 /// Checks what every method needs: at least two frames, none empty, all points finite.
@@ -156,6 +195,12 @@ pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
         if ts.windows(2).any(|w| w[1] <= w[0]) || ts.iter().any(|t| !t.is_finite()) {
             return Err(FitError::InvalidSequence("timestamps must be finite and strictly increasing".into()));
         }
+    }
+    if let Some(poses) = &sequence.poses {
+        if poses.len() != frames {
+            return Err(FitError::InvalidSequence(format!("{} poses for {frames} frames", poses.len())));
+        }
+        poses_relative_to_first(poses)?;
     }
     Ok(())
 }

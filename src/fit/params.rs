@@ -144,6 +144,10 @@ pub struct FitParams {
     pub early_stop_min_delta: Option<f32>,
     /// Remove ground points before fitting (default true).
     pub remove_ground: Option<bool>,
+    /// When the sequence has sensor poses, fit in frame 0's sensor coordinates with every
+    /// frame's ego motion removed, so static points stand still (default true). Answers stay
+    /// in the sensor frame of the time they refer to either way.
+    pub use_poses: Option<bool>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -211,6 +215,13 @@ pub struct ValidFitParams {
     pub remove_ground: bool,
     /// See [`FitParams::max_range_m`].
     pub max_range_m: f32,
+    /// See [`FitParams::use_poses`].
+    #[serde(default = "default_true")]
+    pub use_poses: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 /// Upper bound on iterations accepted from users, so one job cannot occupy a worker for days.
@@ -282,6 +293,7 @@ impl FitParams {
             early_stop_patience: int_in("early_stop_patience", self.early_stop_patience, 100, 1, MAX_ITERATIONS)?,
             early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
+            use_poses: self.use_poses.unwrap_or(true),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

@@ -12,6 +12,7 @@ use crate::geometry::Point;
 use crate::geometry::dbscan::{clusters, dbscan};
 use crate::geometry::ground::{FilterReport, GroundParamsError, PreprocessParams, preprocess};
 use crate::geometry::knn::KdTree;
+use crate::geometry::rigid::Rigid;
 
 /// What preparation did to one frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
@@ -98,12 +99,14 @@ fn split_into_parts(full: &PointSet, sample_points: usize, seed: u64) -> Vec<Poi
 }
 
 /// Prepares every frame (in parallel over frames). `with_parts` splits frames into random
-/// parts of `params.sample_points` (trajectory methods). Fails when a frame has no point left.
+/// parts of `params.sample_points`; `to_fit_frame` (one transform per frame) moves the kept
+/// points into a common frame. Fails when a frame has no point left.
 pub fn prepare_frames(
     sequence: &Sequence,
     params: &ValidFitParams,
     with_clusters: bool,
     with_parts: bool,
+    to_fit_frame: Option<&[Rigid]>,
 ) -> Result<(Vec<PreparedFrame>, Vec<FrameReport>), FitError> {
     let pre = PreprocessParams {
         remove_ground: params.remove_ground,
@@ -116,7 +119,12 @@ pub fn prepare_frames(
         .enumerate()
         .map(|(k, frame)| {
             let (kept, filter): (Vec<u32>, FilterReport) = preprocess(frame, &pre)?;
-            let points: Vec<Point> = kept.iter().map(|&i| frame[i as usize]).collect();
+            // Filters work in the sensor's own coordinates (range, height over the local ground);
+            // the kept points then move to the fit's frame (frame 0's, ego motion removed).
+            let points: Vec<Point> = match to_fit_frame {
+                Some(poses) => kept.iter().map(|&i| poses[k].apply(&frame[i as usize])).collect(),
+                None => kept.iter().map(|&i| frame[i as usize]).collect(),
+            };
             let tree = KdTree::new(&points);
             let clusters = if with_clusters {
                 let labels = dbscan(&points, params.dbscan_eps_m, params.dbscan_min_points);
