@@ -9,6 +9,7 @@ pub mod nsfp;
 pub mod ntp;
 mod params;
 pub mod prepare;
+mod rigidity;
 
 pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};
 

@@ -8,10 +8,10 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::prepare::{PointSet, PreparedFrame};
+use super::rigidity::ClusterRigidity;
 use super::{FitError, LossTerms, Progress, ValidFitParams};
 use crate::geometry::Point;
 use crate::losses::chamfer::{ChamferScratch, truncated_chamfer};
-use crate::losses::multibody::{MultibodyScratch, multibody_loss, subsample_indices};
 use crate::nn::{Adam, Gradients, Mlp, Workspace};
 
 /// Layer widths of a pair-flow MLP: 3 inputs, hidden layers, 3 outputs.
@@ -48,11 +48,7 @@ struct Scratch {
     ws_forward: Workspace<f32>,
     ws_backward: Workspace<f32>,
     chamfer: ChamferScratch,
-    multibody: MultibodyScratch,
-    cluster_points: Vec<Point>,
-    cluster_moved: Vec<Point>,
-    cluster_grad: Vec<Point>,
-    subsample: Vec<u32>,
+    rigidity: ClusterRigidity,
 }
 
 /// One loss evaluation of pair (p1 -> p2) with its gradients in `grads_f`, `grads_g`.
@@ -117,33 +113,16 @@ fn pair_loss(
     if rigidity && params.rigidity_weight > 0.0 && !p1.clusters.is_empty() {
         let weight = params.rigidity_weight / p1.clusters.len() as f32;
         for cluster in &p1.clusters {
-            subsample_indices(cluster.len(), params.max_cluster_points, rng, &mut s.subsample);
-            s.cluster_points.clear();
-            s.cluster_moved.clear();
-            for &j in &s.subsample {
-                let i = cluster[j as usize] as usize;
-                s.cluster_points.push(x[i]);
-                s.cluster_moved.push(s.moved[i]);
-            }
-            s.cluster_grad.clear();
-            s.cluster_grad.resize(s.subsample.len(), [0.0; 3]);
-            let Some(value) = multibody_loss(
-                &s.cluster_points,
-                &s.cluster_moved,
-                params.pair_d_thr_m,
-                params.power_iterations,
-                weight,
-                &mut s.cluster_grad,
-                &mut s.multibody,
-            ) else {
-                continue;
-            };
-            terms.rigidity += value.loss / p1.clusters.len() as f64;
-            for (&j, gr) in s.subsample.iter().zip(&s.cluster_grad) {
-                let i = cluster[j as usize] as usize;
-                for (g, v) in s.grad_flow[3 * i..3 * i + 3].iter_mut().zip(gr) {
-                    *g += v;
+            s.rigidity.select(cluster, x, params.max_cluster_points, rng);
+            let (moved, grad_flow) = (&s.moved, &mut s.grad_flow);
+            let add_grad = |i: usize, g: &Point| {
+                for (acc, v) in grad_flow[3 * i..3 * i + 3].iter_mut().zip(g) {
+                    *acc += v;
                 }
+            };
+            let power = params.power_iterations;
+            if let Some(value) = s.rigidity.loss(params.pair_d_thr_m, power, weight, |i| moved[i], add_grad) {
+                terms.rigidity += value.loss / p1.clusters.len() as f64;
             }
         }
     }

@@ -15,11 +15,11 @@ use super::encoding::{encode_points, input_width};
 use std::time::Instant;
 
 use super::prepare::{PointSet, PreparedFrame};
+use super::rigidity::ClusterRigidity;
 use super::{FitError, LossTerms, PhaseTimes, Progress, ValidFitParams};
 use crate::geometry::Point;
 use crate::losses::chamfer::{ChamferScratch, truncated_chamfer};
 use crate::losses::cycle::mean_squared_difference;
-use crate::losses::multibody::{MultibodyScratch, multibody_loss, subsample_indices};
 use crate::nn::adam::step_lr;
 use crate::nn::{Adam, Gradients, Mlp, Workspace};
 
@@ -59,11 +59,7 @@ struct Scratch {
     primary: Workspace<f32>,
     secondary: Workspace<f32>,
     chamfer: ChamferScratch,
-    multibody: MultibodyScratch,
-    cluster_points: Vec<Point>,
-    cluster_moved: Vec<Point>,
-    cluster_grad: Vec<Point>,
-    subsample: Vec<u32>,
+    rigidity: ClusterRigidity,
     times: PhaseTimes,
 }
 
@@ -215,42 +211,27 @@ impl Problem<'_> {
                 let d_thr_first = self.params.d_thr_base_m + self.params.d_thr_slope_m * tf;
                 let d_thr_last = self.params.d_thr_base_m + self.params.d_thr_slope_m * tb;
                 for cluster in clusters {
-                    subsample_indices(cluster.len(), self.params.max_cluster_points, rng, &mut s.subsample);
-                    s.cluster_points.clear();
-                    s.cluster_points.extend(s.subsample.iter().map(|&j| x[cluster[j as usize] as usize]));
+                    s.rigidity.select(cluster, x, self.params.max_cluster_points, rng);
                     for (target, d_thr) in [(0, d_thr_first), (frames - 1, d_thr_last)] {
                         if target == t {
                             continue; // the projection is the identity: score 1, loss 0
                         }
-                        s.cluster_moved.clear();
-                        for (&j, p) in s.subsample.iter().zip(&s.cluster_points) {
-                            let i = cluster[j as usize] as usize;
-                            let d = displacement(&s.velocities[i * width..][..width], t, target);
-                            s.cluster_moved.push([p[0] + d[0], p[1] + d[1], p[2] + d[2]]);
-                        }
-                        s.cluster_grad.clear();
-                        s.cluster_grad.resize(s.cluster_points.len(), [0.0; 3]);
-                        let Some(value) = multibody_loss(
-                            &s.cluster_points,
-                            &s.cluster_moved,
-                            d_thr,
-                            self.params.power_iterations,
-                            weight,
-                            &mut s.cluster_grad,
-                            &mut s.multibody,
-                        ) else {
-                            continue;
+                        let (velocities, grad_velocities) = (&s.velocities, &mut s.grad_velocities);
+                        let moved_of = |i: usize| {
+                            let d = displacement(&velocities[i * width..][..width], t, target);
+                            [x[i][0] + d[0], x[i][1] + d[1], x[i][2] + d[2]]
                         };
-                        terms.rigidity += value.loss / clusters.len() as f64;
-                        for (&j, g) in s.subsample.iter().zip(&s.cluster_grad) {
-                            let i = cluster[j as usize] as usize;
-                            add_along_path(&mut s.grad_velocities[i * width..][..width], t, target, g);
+                        let add_grad = |i: usize, g: &Point| {
+                            add_along_path(&mut grad_velocities[i * width..][..width], t, target, g);
+                        };
+                        let power = self.params.power_iterations;
+                        if let Some(value) = s.rigidity.loss(d_thr, power, weight, moved_of, add_grad) {
+                            terms.rigidity += value.loss / clusters.len() as f64;
                         }
                     }
                 }
             }
         }
-
         s.times.multibody_s += clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         mlp.backward(&mut s.primary, &s.grad_velocities, grads, None);
