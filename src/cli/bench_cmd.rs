@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::fit::{FitParams, Method, Mode, PhaseTimes, Sequence, fit_sequence};
+use crate::fit::{FitParams, Method, Mode, PhaseTimes, Sequence, ValidFitParams, fit_sequence};
 use crate::geometry::Point;
 use crate::metrics::{TrajectoryMetrics, trajectory_metrics};
 use crate::nn::matmul::{MatMut, MatRef, Threads, matmul};
@@ -177,7 +177,7 @@ fn run_mode(sim: &SimSequence, method: Method, mode: Mode, iterations: Option<us
             + seconds_per_validation.unwrap_or(seconds_per_iteration) * validations as f64
     };
     let (long_term, long_term_dynamic) = if full {
-        let (all, dynamic) = accuracy(sim, &sequence, &model)?;
+        let (all, dynamic) = accuracy(sim, &sequence, &model, &params)?;
         (Some(all), Some(dynamic))
     } else {
         (None, None)
@@ -198,11 +198,13 @@ fn run_mode(sim: &SimSequence, method: Method, mode: Mode, iterations: Option<us
     })
 }
 
-/// Long-term metrics of frame 0's non-ground points at the last frame: all, and dynamic only.
+/// Long-term metrics of frame 0's points at the last frame, on the points `mbnt eval` scores
+/// (non-ground, inside the fit's range and height limits): all, and dynamic only.
 fn accuracy(
     sim: &SimSequence,
     sequence: &Sequence,
     model: &crate::trajectory::FittedModel,
+    params: &ValidFitParams,
 ) -> anyhow::Result<(TrajectoryMetrics, TrajectoryMetrics)> {
     let t = sim.frames.len();
     let axis = model.time_axis();
@@ -210,8 +212,8 @@ fn accuracy(
     let truth = sim.positions_at(0, t - 1)?;
     let dynamic = sim.is_dynamic(0)?;
     let ground: Vec<bool> = sim.truth[0].iter().map(|p| p.is_ground).collect();
-    let all: Vec<bool> = ground.iter().map(|g| !g).collect();
-    let dyn_mask: Vec<bool> = ground.iter().zip(&dynamic).map(|(g, d)| !g && *d).collect();
+    let all = super::eval_cmd::evaluated_in_frame(&sim.frames[0], &ground, params)?;
+    let dyn_mask: Vec<bool> = all.iter().zip(&dynamic).map(|(a, d)| *a && *d).collect();
     Ok((trajectory_metrics(&predicted, &truth, Some(&all)), trajectory_metrics(&predicted, &truth, Some(&dyn_mask))))
 }
 

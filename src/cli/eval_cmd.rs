@@ -8,8 +8,9 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::fit::{FitParams, Method, Sequence, fit_sequence};
+use crate::fit::{FitParams, Method, Sequence, ValidFitParams, fit_sequence};
 use crate::geometry::Point;
+use crate::geometry::ground::{PreprocessParams, preprocess};
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
 use crate::io::npy::{NpyArray, NpyData, read_npy};
@@ -47,16 +48,19 @@ pub struct MethodResult {
     pub method: String,
     /// The sequence (simulator seed or directory).
     pub sequence: String,
-    /// Scene flow, averaged over pairs (non-ground points).
+    /// Scene flow, averaged over pairs (evaluated points: see [`evaluated_points`]).
     pub scene_flow: SceneFlowMetrics,
     /// Scene flow per pair k -> k+1.
     pub scene_flow_per_pair: Vec<SceneFlowMetrics>,
-    /// Frame 0 to frame T-1, all non-ground points.
+    /// Frame 0 to frame T-1, evaluated points.
     pub long_term: TrajectoryMetrics,
     /// The same, static points only.
     pub long_term_static: TrajectoryMetrics,
     /// The same, dynamic points only.
     pub long_term_dynamic: TrajectoryMetrics,
+    /// Frame 0 to frame T-1 for the non-ground points outside the fit's range and height
+    /// limits: the fit never saw them and answers by extrapolating the field.
+    pub long_term_outside: TrajectoryMetrics,
     /// Wall time of the fit (s).
     pub fit_seconds: f64,
 }
@@ -187,18 +191,39 @@ struct Prediction {
     fit_seconds: f64,
 }
 
-fn score(name: &str, seq: &Labelled, pred: &Prediction) -> MethodResult {
-    let t = seq.frames.len();
-    let per_pair: Vec<SceneFlowMetrics> = (0..t - 1)
-        .map(|k| {
-            let non_ground: Vec<bool> = seq.is_ground[k].iter().map(|g| !g).collect();
-            scene_flow_metrics(&pred.flows[k], &seq.flows[k], Some(&non_ground))
-        })
-        .collect();
-    let ground = &seq.is_ground[0];
-    let select = |want_dynamic: Option<bool>| -> Vec<bool> {
-        (0..seq.end_positions.len()).map(|i| !ground[i] && want_dynamic.is_none_or(|d| seq.dynamic_0[i] == d)).collect()
+/// The points every metric is computed on, per frame: not ground (by the ground truth) and
+/// kept by the fit's own pre-processing (range, height over the local ground, ground
+/// estimate), as in the research code's evaluation. The rest of the non-ground points are
+/// scored separately ([`MethodResult::long_term_outside`]).
+pub fn evaluated_points(seq: &Labelled, params: &ValidFitParams) -> anyhow::Result<Vec<Vec<bool>>> {
+    seq.frames.iter().zip(&seq.is_ground).map(|(frame, ground)| evaluated_in_frame(frame, ground, params)).collect()
+}
+
+/// [`evaluated_points`] of one frame, given its ground-truth ground flags.
+pub fn evaluated_in_frame(frame: &[Point], is_ground: &[bool], params: &ValidFitParams) -> anyhow::Result<Vec<bool>> {
+    let pre = PreprocessParams {
+        remove_ground: params.remove_ground,
+        max_range_m: params.max_range_m,
+        ..PreprocessParams::default()
     };
+    let (kept, _) = preprocess(frame, &pre)?;
+    let mut mask = vec![false; frame.len()];
+    for i in kept {
+        mask[i as usize] = !is_ground[i as usize];
+    }
+    Ok(mask)
+}
+
+fn score(name: &str, seq: &Labelled, evaluated: &[Vec<bool>], pred: &Prediction) -> MethodResult {
+    let t = seq.frames.len();
+    let per_pair: Vec<SceneFlowMetrics> =
+        (0..t - 1).map(|k| scene_flow_metrics(&pred.flows[k], &seq.flows[k], Some(&evaluated[k]))).collect();
+    let ground = &seq.is_ground[0];
+    let inside = &evaluated[0];
+    let select = |want_dynamic: Option<bool>| -> Vec<bool> {
+        (0..seq.end_positions.len()).map(|i| inside[i] && want_dynamic.is_none_or(|d| seq.dynamic_0[i] == d)).collect()
+    };
+    let outside: Vec<bool> = (0..seq.end_positions.len()).map(|i| !ground[i] && !inside[i]).collect();
     let truth_end = &seq.end_positions;
     MethodResult {
         method: name.to_string(),
@@ -208,6 +233,7 @@ fn score(name: &str, seq: &Labelled, pred: &Prediction) -> MethodResult {
         long_term: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(None))),
         long_term_static: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(Some(false)))),
         long_term_dynamic: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(Some(true)))),
+        long_term_outside: trajectory_metrics(&pred.end_positions, truth_end, Some(&outside)),
         fit_seconds: pred.fit_seconds,
     }
 }
@@ -286,12 +312,13 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut results = Vec::new();
     for seq in &sequences {
         eprintln!("{}: {} frames, {} points in frame 0", seq.name, seq.frames.len(), seq.frames[0].len());
-        results.push(score("zero", seq, &zero_motion(seq)));
-        results.push(score("rigid-frame", seq, &rigid_frame_motion(seq)));
+        let evaluated = evaluated_points(seq, &params.check(Method::Ntp)?)?;
+        results.push(score("zero", seq, &evaluated, &zero_motion(seq)));
+        results.push(score("rigid-frame", seq, &evaluated, &rigid_frame_motion(seq)));
         for &method in &args.methods {
             eprintln!("{}: fitting {}", seq.name, method.name());
             let pred = run_method(seq, method, &params)?;
-            let result = score(method.name(), seq, &pred);
+            let result = score(method.name(), seq, &evaluated, &pred);
             eprintln!(
                 "  {}: long-term EPE {:.3} m, Acc.5 {:.1} %, scene-flow EPE {:.3} m, fit {:.0} s",
                 method.name(),
@@ -314,7 +341,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 
 fn print_table(results: &[MethodResult]) {
     println!(
-        "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} | {:>8}",
+        "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} {:>6} | {:>8}",
         "method",
         "sequence",
         "EPE",
@@ -327,11 +354,12 @@ fn print_table(results: &[MethodResult]) {
         "Acc1.0",
         "St.5",
         "Dyn.5",
+        "Out.5",
         "fit s"
     );
     for r in results {
         println!(
-            "{:<12} {:>10} | {:>7.4} {:>7.2} {:>7.2} {:>7.2} {:>6.3} | {:>7.3} {:>6.2} {:>6.2} | {:>6.2} {:>6.2} | {:>8.1}",
+            "{:<12} {:>10} | {:>7.4} {:>7.2} {:>7.2} {:>7.2} {:>6.3} | {:>7.3} {:>6.2} {:>6.2} | {:>6.2} {:>6.2} {:>6.2} | {:>8.1}",
             r.method,
             r.sequence,
             r.scene_flow.epe_m,
@@ -344,7 +372,33 @@ fn print_table(results: &[MethodResult]) {
             100.0 * r.long_term.acc_1_0,
             100.0 * r.long_term_static.acc_0_5,
             100.0 * r.long_term_dynamic.acc_0_5,
+            100.0 * r.long_term_outside.acc_0_5,
             r.fit_seconds
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn evaluated_points_are_the_non_ground_points_the_fit_keeps() {
+        let sim = simulate(&SimParams { seed: 5, frames: 2, ..SimParams::default() }).unwrap();
+        let seq = Labelled::from_sim("seed 5".into(), &sim).unwrap();
+        let params = FitParams::default().check(Method::Mbnt).unwrap();
+        let masks = evaluated_points(&seq, &params).unwrap();
+        for (k, mask) in masks.iter().enumerate() {
+            let frame = &seq.frames[k];
+            assert_eq!(mask.len(), frame.len());
+            let non_ground = seq.is_ground[k].iter().filter(|g| !**g).count();
+            let inside = mask.iter().filter(|m| **m).count();
+            // Most non-ground points are scored; the rest are beyond the range or height limits.
+            assert!(inside > non_ground / 2 && inside < non_ground, "{inside} of {non_ground}");
+            for (i, p) in frame.iter().enumerate() {
+                let range_m = p.iter().map(|c| c * c).sum::<f32>().sqrt();
+                assert!(!mask[i] || (!seq.is_ground[k][i] && range_m <= params.max_range_m), "point {i} of frame {k}");
+            }
+        }
     }
 }
