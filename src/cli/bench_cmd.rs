@@ -35,7 +35,7 @@ pub struct BenchArgs {
     /// Modes to run, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "fast,faithful")]
     pub modes: Vec<Mode>,
-    /// Also time iterations at 10k/30k/100k points per frame and T = 10/25/50 (fast mode).
+    /// Also time each mode at about 10k/30k/100k points per frame and T = 10/25/50.
     #[arg(long)]
     pub scaling: bool,
     /// Write the results as JSON here.
@@ -81,15 +81,17 @@ pub struct ModeResult {
     pub long_term_dynamic: Option<TrajectoryMetrics>,
 }
 
-/// Scaling measurement: fast-mode time per iteration at one size.
+/// Scaling measurement: one mode's timings at one sequence size.
 #[derive(Debug, Clone, Serialize)]
 pub struct ScalingResult {
     /// Frames.
     pub frames: usize,
-    /// Mean points per frame fitted.
+    /// Mean points per frame fitted (after ground removal and the range and height limits).
     pub points_per_frame: usize,
-    /// Mean wall time of an ordinary iteration (s).
-    pub seconds_per_iteration: f64,
+    /// Wall time of preparation: ground removal, trees, clusters (s).
+    pub prepare_s: f64,
+    /// The timings (no accuracy: the sequences are thinned or without poses).
+    pub timing: ModeResult,
 }
 
 /// Everything `mbnt bench` measured.
@@ -137,15 +139,22 @@ pub fn peak_rss_mib() -> Option<f64> {
 }
 
 /// Times one fit; returns the measurements (accuracy only for full fits).
-fn run_mode(sim: &SimSequence, method: Method, mode: Mode, iterations: Option<usize>) -> anyhow::Result<ModeResult> {
+/// Fits `sequence` in `mode` (`iterations` of them, or a full fit) and times it; scores the
+/// result against `sim`'s ground truth when given and the fit is full.
+fn run_mode(
+    sequence: &Sequence,
+    sim: Option<&SimSequence>,
+    method: Method,
+    mode: Mode,
+    iterations: Option<usize>,
+) -> anyhow::Result<(ModeResult, crate::trajectory::FitReport)> {
     let params = FitParams { mode: Some(mode), iterations, ..FitParams::default() }.check(method)?;
-    let sequence = sim.to_fit_sequence();
     let mut regular = Vec::new();
     let mut validation = Vec::new();
     let started = Instant::now();
     let mut last = None::<Instant>;
     let mut last_print = Instant::now();
-    let model = fit_sequence(&sequence, method, &params, &mut |p| {
+    let model = fit_sequence(sequence, method, &params, &mut |p| {
         let now = Instant::now();
         // The first iteration's interval would include preparation: skip it.
         if let Some(prev) = last {
@@ -176,13 +185,13 @@ fn run_mode(sim: &SimSequence, method: Method, mode: Mode, iterations: Option<us
         prep + seconds_per_iteration * (planned - validations) as f64
             + seconds_per_validation.unwrap_or(seconds_per_iteration) * validations as f64
     };
-    let (long_term, long_term_dynamic) = if full {
-        let (all, dynamic) = accuracy(sim, &sequence, &model, &params)?;
+    let (long_term, long_term_dynamic) = if let (true, Some(sim)) = (full, sim) {
+        let (all, dynamic) = accuracy(sim, sequence, &model, &params)?;
         (Some(all), Some(dynamic))
     } else {
         (None, None)
     };
-    Ok(ModeResult {
+    let result = ModeResult {
         mode,
         iterations: report.iterations,
         mlp_gflops: times.mlp_gflop / (times.mlp_forward_s + times.mlp_backward_s).max(1e-12),
@@ -195,7 +204,8 @@ fn run_mode(sim: &SimSequence, method: Method, mode: Mode, iterations: Option<us
         peak_rss_mib: peak_rss_mib(),
         long_term,
         long_term_dynamic,
-    })
+    };
+    Ok((result, report.clone()))
 }
 
 /// Long-term metrics of frame 0's points at the last frame, on the points `mbnt eval` scores
@@ -240,18 +250,22 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     for &mode in &args.modes {
         eprintln!("timing {} in {} mode", args.method.name(), mode.name());
         let iterations = if args.full { None } else { Some(args.iterations) };
-        modes.push(run_mode(&sim, args.method, mode, iterations)?);
+        modes.push(run_mode(&sim.to_fit_sequence(), Some(&sim), args.method, mode, iterations)?.0);
     }
 
     let mut scaling = Vec::new();
     if args.scaling {
+        let mut sequences = Vec::new();
         for (frames, fraction) in [(25, 1.0 / 3.0), (25, 1.0), (10, 1.0), (50, 1.0)] {
             let sim = simulate(&SimParams { seed: args.seed, frames, ..SimParams::default() })?;
-            let sequence = Sequence { frames: thin(&sim, fraction), timestamps_s: None, poses: None };
-            scaling.push(time_iterations(&sequence, args.method, args.iterations)?);
+            sequences.push(Sequence { frames: thin(&sim, fraction), ..sim.to_fit_sequence() });
         }
-        let dense = simulate(&dense_params(args.seed))?;
-        scaling.push(time_iterations(&dense.to_fit_sequence(), args.method, args.iterations)?);
+        sequences.push(simulate(&dense_params(args.seed))?.to_fit_sequence());
+        for &mode in &args.modes {
+            for sequence in &sequences {
+                scaling.push(time_scaling(sequence, args.method, mode, args.iterations)?);
+            }
+        }
     }
 
     let result = BenchResult { cpus, gemm, gemm_peak_gflops, modes, scaling };
@@ -272,30 +286,22 @@ fn dense_params(seed: u64) -> SimParams {
     params
 }
 
-fn time_iterations(sequence: &Sequence, method: Method, iterations: usize) -> anyhow::Result<ScalingResult> {
-    let params =
-        FitParams { mode: Some(Mode::Fast), iterations: Some(iterations), ..FitParams::default() }.check(method)?;
-    let mut regular = Vec::new();
-    let mut last = None::<Instant>;
-    let model = fit_sequence(sequence, method, &params, &mut |p| {
-        let now = Instant::now();
-        if let Some(prev) = last
-            && (p.iteration - 1) % params.validate_every != 0
-        {
-            regular.push(now.duration_since(prev).as_secs_f64());
-        }
-        last = Some(now);
-        ControlFlow::Continue(())
-    })?;
-    let fitted: usize = model.report().frames.iter().map(|f| f.fitted_points).sum();
+fn time_scaling(sequence: &Sequence, method: Method, mode: Mode, iterations: usize) -> anyhow::Result<ScalingResult> {
+    let (timing, report) = run_mode(sequence, None, method, mode, Some(iterations))?;
+    let fitted: usize = report.frames.iter().map(|f| f.fitted_points).sum();
     let result = ScalingResult {
         frames: sequence.frames.len(),
         points_per_frame: fitted / sequence.frames.len(),
-        seconds_per_iteration: regular.iter().sum::<f64>() / regular.len().max(1) as f64,
+        prepare_s: timing.wall_s - timing.times.total_s,
+        timing,
     };
     eprintln!(
-        "  T = {}, {} points/frame: {:.3} s/iteration",
-        result.frames, result.points_per_frame, result.seconds_per_iteration
+        "  {} T = {}, {} points/frame: {:.3} s/iteration, full fit (est.) {:.0} s",
+        mode.name(),
+        result.frames,
+        result.points_per_frame,
+        result.timing.seconds_per_iteration,
+        result.timing.full_fit_s
     );
     Ok(result)
 }
@@ -358,9 +364,19 @@ fn print_report(r: &BenchResult) {
     println!(" s* = full-fit time estimated from the timed iterations; Acc.5 needs --full)");
     if !r.scaling.is_empty() {
         println!();
-        println!("scaling (fast mode): frames, points/frame, s/iteration");
+        println!("scaling: mode, frames, points/frame, preparation s, s/iteration, s/validation, full fit s (est.)");
         for s in &r.scaling {
-            println!("  {:>3} {:>7} {:>8.3}", s.frames, s.points_per_frame, s.seconds_per_iteration);
+            let t = &s.timing;
+            println!(
+                "  {:<9} {:>3} {:>7} {:>8.2} {:>8.3} {:>8.2} {:>8.0}",
+                t.mode.name(),
+                s.frames,
+                s.points_per_frame,
+                s.prepare_s,
+                t.seconds_per_iteration,
+                t.seconds_per_validation.unwrap_or(f64::NAN),
+                t.full_fit_s
+            );
         }
     }
 }

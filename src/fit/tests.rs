@@ -299,3 +299,38 @@ fn with_poses_the_ego_motion_is_removed_and_answers_stay_in_sensor_frames() {
     let e = fit_sequence(&bad, Method::Ntp, &params, &mut |_| ControlFlow::Continue(())).unwrap_err();
     assert!(e.to_string().contains("pose 2"), "{e}");
 }
+
+/// The multi-body term holds every cluster to one rigid motion, so a DBSCAN cluster that joins
+/// a moving body to static structure would hold the body back. On a simulated street (ego
+/// motion removed with the poses, as fits do) clusters must keep moving and static bodies
+/// apart: at most 5 % of the clustered dynamic points may share a cluster with another body.
+#[test]
+fn dbscan_clusters_of_a_street_scene_keep_moving_bodies_apart() {
+    use crate::geometry::dbscan::{clusters, dbscan};
+    use crate::geometry::ground::{PreprocessParams, preprocess};
+    use crate::sim::{SimParams, simulate};
+
+    let sim = simulate(&SimParams { seed: 7, frames: 9, ..SimParams::default() }).unwrap();
+    let poses = poses_relative_to_first(&sim.ego_poses).unwrap();
+    let params = FitParams::default().check(Method::Mbnt).unwrap();
+    let (mut dynamic_clustered, mut dynamic_mixed) = (0usize, 0usize);
+    for k in [0, 8] {
+        let frame = &sim.frames[k];
+        let (kept, _) = preprocess(frame, &PreprocessParams::default()).unwrap();
+        let points: Vec<Point> = kept.iter().map(|&i| poses[k].apply(&frame[i as usize])).collect();
+        let body = |i: u32| sim.truth[k][kept[i as usize] as usize].object_id;
+        let labels = dbscan(&points, params.dbscan_eps_m, params.dbscan_min_points);
+        for cluster in clusters(&labels) {
+            let dynamic = cluster.iter().filter(|&&i| sim.objects[body(i) as usize].dynamic).count();
+            dynamic_clustered += dynamic;
+            if dynamic > 0 && cluster.iter().any(|&i| body(i) != body(cluster[0])) {
+                dynamic_mixed += dynamic;
+            }
+        }
+    }
+    assert!(dynamic_clustered > 500, "the scene has moving bodies in clusters: {dynamic_clustered}");
+    assert!(
+        dynamic_mixed * 20 <= dynamic_clustered,
+        "{dynamic_mixed} of {dynamic_clustered} clustered dynamic points share a cluster with another body"
+    );
+}
