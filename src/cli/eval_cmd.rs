@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::fit::{FitParams, Method, Sequence, ValidFitParams, fit_sequence};
+use crate::fit::{FitParams, Method, Sequence, ValidFitParams, fit_sequence, poses_relative_to_first};
 use crate::geometry::Point;
 use crate::geometry::ground::{PreprocessParams, preprocess};
 use crate::geometry::knn::KdTree;
@@ -33,6 +33,9 @@ pub struct EvalArgs {
     /// Methods to run (comma-separated; the baselines always run).
     #[arg(long, value_delimiter = ',', default_value = "mbnt,ntp,mbnsf,nsfp")]
     pub methods: Vec<Method>,
+    /// Run the baselines only (no fit).
+    #[arg(long)]
+    pub baselines_only: bool,
     /// Hyper-parameters as JSON, applied to every method (e.g. '{"iterations": 300}').
     #[arg(long)]
     pub params: Option<String>,
@@ -275,6 +278,29 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
     Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64() }
 }
 
+/// The static world seen through the sensor poses (when known): every point keeps its world
+/// position. Exact for static points, blind to moving ones: what the poses alone give.
+fn ego_poses_motion(sim: &Labelled) -> anyhow::Result<Option<Prediction>> {
+    let Some(poses) = &sim.poses else { return Ok(None) };
+    let to_first = poses_relative_to_first(poses)?;
+    let from_first: Vec<Rigid> = to_first.iter().map(Rigid::inverse).collect();
+    let moved = |k: usize, j: usize, p: &Point| from_first[j].apply(&to_first[k].apply(p));
+    let t = sim.frames.len();
+    let flows = (0..t - 1)
+        .map(|k| {
+            sim.frames[k]
+                .iter()
+                .map(|p| {
+                    let q = moved(k, k + 1, p);
+                    [q[0] - p[0], q[1] - p[1], q[2] - p[2]]
+                })
+                .collect()
+        })
+        .collect();
+    let end_positions = sim.frames[0].iter().map(|p| moved(0, t - 1, p)).collect();
+    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0 }))
+}
+
 fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<Prediction> {
     let params = params.check(method)?;
     let sequence =
@@ -315,7 +341,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         let evaluated = evaluated_points(seq, &params.check(Method::Ntp)?)?;
         results.push(score("zero", seq, &evaluated, &zero_motion(seq)));
         results.push(score("rigid-frame", seq, &evaluated, &rigid_frame_motion(seq)));
-        for &method in &args.methods {
+        if let Some(pred) = ego_poses_motion(seq)? {
+            results.push(score("ego-poses", seq, &evaluated, &pred));
+        }
+        let methods: &[Method] = if args.baselines_only { &[] } else { &args.methods };
+        for &method in methods {
             eprintln!("{}: fitting {}", seq.name, method.name());
             let pred = run_method(seq, method, &params)?;
             let result = score(method.name(), seq, &evaluated, &pred);
@@ -381,6 +411,28 @@ fn print_table(results: &[MethodResult]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_ego_poses_baseline_is_exact_on_static_points_only() {
+        let sim = simulate(&SimParams { seed: 5, frames: 4, ..SimParams::default() }).unwrap();
+        let seq = Labelled::from_sim("seed 5".into(), &sim).unwrap();
+        let params = FitParams::default().check(Method::Mbnt).unwrap();
+        let result = score(
+            "ego-poses",
+            &seq,
+            &evaluated_points(&seq, &params).unwrap(),
+            &ego_poses_motion(&seq).unwrap().unwrap(),
+        );
+        assert!(result.long_term_static.epe_m < 1e-3, "{:?}", result.long_term_static);
+        assert_eq!(result.long_term_static.acc_0_5, 1.0);
+        assert!(
+            result.long_term_dynamic.points > 0 && result.long_term_dynamic.epe_m > 0.5,
+            "{:?}",
+            result.long_term_dynamic
+        );
+        let without = Labelled { poses: None, ..seq };
+        assert!(ego_poses_motion(&without).unwrap().is_none());
+    }
 
     #[test]
     fn evaluated_points_are_the_non_ground_points_the_fit_keeps() {

@@ -144,6 +144,10 @@ pub fn fit_pairs(
     let dims = flow_dims(params);
     let mut f = Mlp::<f32>::new(&dims, &mut rng);
     let mut g = Mlp::<f32>::new(&dims, &mut rng);
+    if params.zero_output_init {
+        f.zero_output_layer();
+        g.zero_output_layer();
+    }
     let mut adam_f = Adam::new(&f, params.learning_rate);
     let mut adam_g = Adam::new(&g, params.learning_rate);
     let mut grads_f = Gradients::zeros_like(&f);

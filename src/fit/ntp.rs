@@ -285,6 +285,9 @@ pub fn fit_trajectory(
     let t_count = frames.len();
     let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
     let mut mlp = Mlp::<f32>::new(&trajectory_dims(t_count, params), &mut rng);
+    if params.zero_output_init {
+        mlp.zero_output_layer();
+    }
     let mut adam = Adam::new(&mlp, params.learning_rate);
     let mut grads = Gradients::zeros_like(&mlp);
     let mut scratch = Scratch::default();

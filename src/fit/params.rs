@@ -148,6 +148,11 @@ pub struct FitParams {
     /// frame's ego motion removed, so static points stand still (default true). Answers stay
     /// in the sensor frame of the time they refer to either way.
     pub use_poses: Option<bool>,
+    /// **Ours, off by default:** start the network's output layer at zero, so the initial field
+    /// is "nothing moves" (in the fit's coordinates: the static world when poses are used)
+    /// instead of PyTorch's random initial velocities; points and times that no loss term
+    /// reaches keep that answer instead of the random one.
+    pub zero_output_init: Option<bool>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -218,6 +223,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::use_poses`].
     #[serde(default = "default_true")]
     pub use_poses: bool,
+    /// See [`FitParams::zero_output_init`].
+    #[serde(default)]
+    pub zero_output_init: bool,
 }
 
 fn default_true() -> bool {
@@ -294,6 +302,7 @@ impl FitParams {
             early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
             use_poses: self.use_poses.unwrap_or(true),
+            zero_output_init: self.zero_output_init.unwrap_or(false),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

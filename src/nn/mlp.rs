@@ -117,6 +117,15 @@ impl<T: Scalar> Mlp<T> {
         &self.params[layer_ranges(&self.dims, l).1]
     }
 
+    /// Sets the last layer's weights and bias to zero: the network then outputs zero for every
+    /// input, and the first gradient step moves only that layer.
+    pub fn zero_output_layer(&mut self) {
+        let last = self.layers() - 1;
+        let (w, b) = layer_ranges(&self.dims, last);
+        self.params[w].fill(T::zero());
+        self.params[b].fill(T::zero());
+    }
+
     /// The same network in another float type (values rounded to nearest).
     pub fn cast<U: Scalar>(&self) -> Mlp<U> {
         Mlp {
@@ -498,6 +507,26 @@ mod tests {
             pre.push(z);
         }
         pre
+    }
+
+    #[test]
+    fn a_zeroed_output_layer_answers_zero_and_learns_first_in_that_layer() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut mlp = Mlp::<f64>::new(&[3, 8, 8, 2], &mut rng);
+        let before = mlp.parameters().to_vec();
+        mlp.zero_output_layer();
+        let input = random(5 * 3, 10.0, &mut rng);
+        let mut ws = Workspace::default();
+        assert!(mlp.forward(&input, 5, &mut ws).iter().all(|&y| y == 0.0));
+        // Hidden layers keep their random weights, so the output layer gets a gradient at once...
+        let last = mlp.layers() - 1;
+        let hidden_len = layer_ranges(&mlp.dims, last).0.start;
+        assert_eq!(&mlp.parameters()[..hidden_len], &before[..hidden_len]);
+        let mut grads = Gradients::zeros_like(&mlp);
+        mlp.backward(&mut ws, &[1.0; 10], &mut grads, None);
+        assert!(grads.weights(last).iter().any(|&g| g != 0.0));
+        // ...while nothing flows back through the zero weights yet.
+        assert!(grads.values()[..hidden_len].iter().all(|&g| g == 0.0));
     }
 
     /// Test loss: L = Σ c ⊙ y + ½ Σ y², so dL/dy = c + y (nonlinear, so second-order terms of the
