@@ -88,12 +88,15 @@ impl Problem<'_> {
         }
     }
 
-    /// Loss terms of reference frame `t`; adds their gradients into `grads`.
+    /// Loss terms of reference frame `t`; adds their gradients into `grads`. The multi-body
+    /// gradient is scaled by `rigidity_ramp` (in [0, 1], the warm-up); the terms are not.
+    #[allow(clippy::too_many_arguments)]
     fn reference_frame(
         &self,
         mlp: &Mlp<f32>,
         t: usize,
         validation: bool,
+        rigidity_ramp: f32,
         grads: &mut Gradients<f32>,
         s: &mut Scratch,
         rng: &mut ChaCha8Rng,
@@ -205,7 +208,7 @@ impl Problem<'_> {
         if self.rigidity && self.params.rigidity_weight > 0.0 {
             let clusters = &source.clusters;
             if !clusters.is_empty() {
-                let weight = self.params.rigidity_weight / clusters.len() as f32;
+                let weight = rigidity_ramp * self.params.rigidity_weight / clusters.len() as f32;
                 let tf = t as f32 / frames as f32;
                 let tb = (frames - t) as f32 / frames as f32;
                 let d_thr_first = self.params.d_thr_base_m + self.params.d_thr_slope_m * tf;
@@ -310,10 +313,15 @@ pub fn fit_trajectory(
             references.extend((0..params.reference_frames).map(|_| rng.random_range(0..t_count)));
         }
         grads.fill_zero();
+        // The validation loss keeps the full weight, so checkpoints stay comparable.
+        let ramp = match params.rigidity_warmup_iterations {
+            0 => 1.0,
+            warmup => (iteration as f32 / warmup as f32).min(1.0),
+        };
         let mut sum = LossTerms::default();
         let mut validation_sum = 0.0;
         for &t in &references {
-            let terms = problem.reference_frame(&mlp, t, validation, &mut grads, &mut scratch, &mut rng);
+            let terms = problem.reference_frame(&mlp, t, validation, ramp, &mut grads, &mut scratch, &mut rng);
             if !terms.total.is_finite() {
                 return Err(FitError::Diverged { iteration, loss: terms.total });
             }

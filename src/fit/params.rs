@@ -153,6 +153,10 @@ pub struct FitParams {
     /// instead of PyTorch's random initial velocities; points and times that no loss term
     /// reaches keep that answer instead of the random one.
     pub zero_output_init: Option<bool>,
+    /// **Ours, 0 (off) by default:** MBNT's multi-body gradient grows linearly from 0 to its full
+    /// weight over this many iterations, so Chamfer can set bodies moving before rigidity holds
+    /// them together. The validation loss always uses the full weight.
+    pub rigidity_warmup_iterations: Option<usize>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -226,6 +230,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::zero_output_init`].
     #[serde(default)]
     pub zero_output_init: bool,
+    /// See [`FitParams::rigidity_warmup_iterations`].
+    #[serde(default)]
+    pub rigidity_warmup_iterations: usize,
 }
 
 fn default_true() -> bool {
@@ -303,6 +310,13 @@ impl FitParams {
             remove_ground: self.remove_ground.unwrap_or(true),
             use_poses: self.use_poses.unwrap_or(true),
             zero_output_init: self.zero_output_init.unwrap_or(false),
+            rigidity_warmup_iterations: int_in(
+                "rigidity_warmup_iterations",
+                self.rigidity_warmup_iterations,
+                0,
+                0,
+                MAX_ITERATIONS,
+            )?,
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

@@ -105,6 +105,17 @@ fn mbnt_recovers_two_rigid_motions_over_five_frames() {
 }
 
 #[test]
+fn mbnt_with_a_rigidity_warm_up_still_recovers_two_rigid_motions() {
+    let base = params_of(&small_params(Method::Mbnt, 300));
+    let params =
+        FitParams { iterations: Some(300), rigidity_warmup_iterations: Some(150), ..base }.check(Method::Mbnt).unwrap();
+    assert_eq!(params.rigidity_warmup_iterations, 150);
+    let m = long_term_accuracy_with(Method::Mbnt, params);
+    assert!(m.epe_m < 0.25, "{m:?}");
+    assert!(m.acc_0_5 > 0.9, "{m:?}");
+}
+
+#[test]
 fn ntp_recovers_two_rigid_motions_over_five_frames() {
     let m = long_term_accuracy(Method::Ntp, 300);
     eprintln!("NTP two bodies: {m:?}");
