@@ -153,9 +153,10 @@ pub struct FitParams {
     /// instead of PyTorch's random initial velocities; points and times that no loss term
     /// reaches keep that answer instead of the random one.
     pub zero_output_init: Option<bool>,
-    /// **Ours, 0 (off) by default:** MBNT's multi-body gradient grows linearly from 0 to its full
-    /// weight over this many iterations, so Chamfer can set bodies moving before rigidity holds
-    /// them together. The validation loss always uses the full weight.
+    /// **Ours (fast default 250, faithful 0 = off):** MBNT's multi-body gradient grows linearly
+    /// from 0 to its full weight over this many iterations, so Chamfer can place the scene before
+    /// rigidity holds clusters together (at full strength from the start, it is satisfied fastest
+    /// by a globally rigid drift). The validation loss always uses the full weight.
     pub rigidity_warmup_iterations: Option<usize>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
@@ -313,7 +314,7 @@ impl FitParams {
             rigidity_warmup_iterations: int_in(
                 "rigidity_warmup_iterations",
                 self.rigidity_warmup_iterations,
-                0,
+                if fast { 250 } else { 0 },
                 0,
                 MAX_ITERATIONS,
             )?,
@@ -333,6 +334,7 @@ mod tests {
         assert_eq!(p.sample_points, 0);
         assert_eq!(p.max_cluster_points, 3000);
         assert_eq!(p.validation_patience, 0);
+        assert_eq!(p.rigidity_warmup_iterations, 0);
         assert_eq!(p.learning_rate, 0.003);
         assert_eq!(p.dbscan_min_points, 30);
         assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations, 1000);
@@ -342,7 +344,7 @@ mod tests {
     fn fast_mode_is_the_default_and_explicit_values_win() {
         let p = FitParams::default().check(Method::Mbnt).unwrap();
         assert_eq!(p.mode, Mode::Fast);
-        assert!(p.sample_points > 0 && p.validation_patience > 0);
+        assert!(p.sample_points > 0 && p.validation_patience > 0 && p.rigidity_warmup_iterations == 250);
         let p = FitParams { sample_points: Some(0), ..Default::default() }.check(Method::Mbnt).unwrap();
         assert_eq!(p.sample_points, 0);
         let e = serde_json::from_str::<FitParams>(r#"{"mode": "turbo"}"#).unwrap_err();
