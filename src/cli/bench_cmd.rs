@@ -90,7 +90,7 @@ pub struct ScalingResult {
     pub points_per_frame: usize,
     /// Wall time of preparation: ground removal, trees, clusters (s).
     pub prepare_s: f64,
-    /// The timings (no accuracy: the sequences are thinned or without poses).
+    /// The timings (no accuracy: thinned and dense sequences have no ground truth at hand).
     pub timing: ModeResult,
 }
 
@@ -138,7 +138,6 @@ pub fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
-/// Times one fit; returns the measurements (accuracy only for full fits).
 /// Fits `sequence` in `mode` (`iterations` of them, or a full fit) and times it; scores the
 /// result against `sim`'s ground truth when given and the fit is full.
 fn run_mode(

@@ -263,17 +263,7 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
         let tree = KdTree::new(&dst);
         transforms.push(fit_rigid_icp(&src, &tree, &dst, Rigid::identity(), 30, 1.0));
     }
-    let flows = (0..t - 1)
-        .map(|k| {
-            sim.frames[k]
-                .iter()
-                .map(|p| {
-                    let q = transforms[k].apply(p);
-                    [q[0] - p[0], q[1] - p[1], q[2] - p[2]]
-                })
-                .collect()
-        })
-        .collect();
+    let flows = flows_from(sim, |k, p| transforms[k].apply(p));
     let end_positions = sim.frames[0].iter().map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q))).collect();
     Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64() }
 }
@@ -286,19 +276,24 @@ fn ego_poses_motion(sim: &Labelled) -> anyhow::Result<Option<Prediction>> {
     let from_first: Vec<Rigid> = to_first.iter().map(Rigid::inverse).collect();
     let moved = |k: usize, j: usize, p: &Point| from_first[j].apply(&to_first[k].apply(p));
     let t = sim.frames.len();
-    let flows = (0..t - 1)
+    let flows = flows_from(sim, |k, p| moved(k, k + 1, p));
+    let end_positions = sim.frames[0].iter().map(|p| moved(0, t - 1, p)).collect();
+    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0 }))
+}
+
+/// Scene flows k -> k+1 of every frame's points, given where a point of frame k lands in k+1.
+fn flows_from(sim: &Labelled, next_position: impl Fn(usize, &Point) -> Point) -> Vec<Vec<Point>> {
+    (0..sim.frames.len() - 1)
         .map(|k| {
             sim.frames[k]
                 .iter()
                 .map(|p| {
-                    let q = moved(k, k + 1, p);
+                    let q = next_position(k, p);
                     [q[0] - p[0], q[1] - p[1], q[2] - p[2]]
                 })
                 .collect()
         })
-        .collect();
-    let end_positions = sim.frames[0].iter().map(|p| moved(0, t - 1, p)).collect();
-    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0 }))
+        .collect()
 }
 
 fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<Prediction> {
