@@ -379,45 +379,51 @@ fn score_objects(
     still: Option<&Prediction>,
 ) -> Vec<ObjectResult> {
     let Some(ids) = &seq.object_ids else { return Vec::new() };
-    let t = seq.frames.len();
+    // One pass over every evaluated point, summing per moving body.
+    let slot: std::collections::HashMap<u32, usize> =
+        seq.moving_objects.iter().enumerate().map(|(s, (id, _))| (*id, s)).collect();
+    let n_objects = seq.moving_objects.len();
     let zero = [0.0f32; 3];
-    let mut results = Vec::new();
-    for (id, label) in &seq.moving_objects {
-        let mut flow = Captured::default();
-        for k in 0..t - 1 {
-            for i in (0..seq.frames[k].len()).filter(|&i| evaluated[k][i] && ids[k][i] == *id) {
-                let still_flow = still.map_or(&zero, |s| &s.flows[k][i]);
-                flow.add(&pred.flows[k][i], &seq.flows[k][i], still_flow);
+    let mut flow: Vec<Captured> = (0..n_objects).map(|_| Captured::default()).collect();
+    for k in 0..seq.frames.len() - 1 {
+        for (i, id) in ids[k].iter().enumerate().filter(|(i, _)| evaluated[k][*i]) {
+            if let Some(&s) = slot.get(id) {
+                let still_flow = still.map_or(&zero, |w| &w.flows[k][i]);
+                flow[s].add(&pred.flows[k][i], &seq.flows[k][i], still_flow);
             }
         }
-        let mask: Vec<bool> = (0..seq.frames[0].len()).map(|i| evaluated[0][i] && ids[0][i] == *id).collect();
-        let mut end = Captured::default();
-        let start = &seq.frames[0];
-        let displacement = |a: &Point, b: &Point| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-        for i in (0..start.len()).filter(|&i| mask[i]) {
-            let still_d = still.map_or(zero, |s| displacement(&s.end_positions[i], &start[i]));
-            end.add(
+    }
+    let start = &seq.frames[0];
+    let displacement = |a: &Point, b: &Point| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let mut end: Vec<Captured> = (0..n_objects).map(|_| Captured::default()).collect();
+    let mut masks = vec![vec![false; start.len()]; n_objects];
+    for (i, id) in ids[0].iter().enumerate().filter(|(i, _)| evaluated[0][*i]) {
+        if let Some(&s) = slot.get(id) {
+            masks[s][i] = true;
+            let still_d = still.map_or(zero, |w| displacement(&w.end_positions[i], &start[i]));
+            end[s].add(
                 &displacement(&pred.end_positions[i], &start[i]),
                 &displacement(&seq.end_positions[i], &start[i]),
                 &still_d,
             );
         }
-        if flow.points == 0 && end.points == 0 {
-            continue;
-        }
-        results.push(ObjectResult {
+    }
+    seq.moving_objects
+        .iter()
+        .zip(flow.iter().zip(&end).zip(&masks))
+        .filter(|(_, ((flow, end), _))| flow.points > 0 || end.points > 0)
+        .map(|((id, label), ((flow, end), mask))| ObjectResult {
             object_id: *id,
             label: label.clone(),
-            long_term: trajectory_metrics(&pred.end_positions, &seq.end_positions, Some(&mask)),
+            long_term: trajectory_metrics(&pred.end_positions, &seq.end_positions, Some(mask)),
             long_term_captured: end.share(),
             long_term_true_m: end.mean(end.true_norm),
             scene_flow_epe_m: flow.mean(flow.err),
             scene_flow_captured: flow.share(),
             scene_flow_true_m: flow.mean(flow.true_norm),
             scene_flow_points: flow.points,
-        });
-    }
-    results
+        })
+        .collect()
 }
 
 fn zero_motion(sim: &Labelled) -> Prediction {
