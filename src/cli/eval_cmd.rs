@@ -66,6 +66,10 @@ pub struct MethodResult {
     pub long_term_outside: TrajectoryMetrics,
     /// Wall time of the fit (s).
     pub fit_seconds: f64,
+    /// Optimiser iterations the fit ran (0 for baselines; early stopping may end a fit sooner).
+    pub iterations: usize,
+    /// Iteration of the checkpoint the fit kept (trajectory methods).
+    pub best_iteration: Option<usize>,
     /// Every moving body on its own (empty when the ground truth has no object ids).
     pub moving_objects: Vec<ObjectResult>,
 }
@@ -282,6 +286,8 @@ struct Prediction {
     flows: Vec<Vec<Point>>,
     end_positions: Vec<Point>,
     fit_seconds: f64,
+    iterations: usize,
+    best_iteration: Option<usize>,
 }
 
 /// The points every metric is computed on, per frame: not ground (by the ground truth) and
@@ -336,6 +342,8 @@ fn score(
         long_term_dynamic: trajectory_metrics(&pred.end_positions, truth_end, Some(&select(Some(true)))),
         long_term_outside: trajectory_metrics(&pred.end_positions, truth_end, Some(&outside)),
         fit_seconds: pred.fit_seconds,
+        iterations: pred.iterations,
+        best_iteration: pred.best_iteration,
         moving_objects: score_objects(seq, evaluated, pred, still),
     }
 }
@@ -431,6 +439,8 @@ fn zero_motion(sim: &Labelled) -> Prediction {
         flows: sim.frames[..sim.frames.len() - 1].iter().map(|f| vec![[0.0; 3]; f.len()]).collect(),
         end_positions: sim.frames[0].clone(),
         fit_seconds: 0.0,
+        iterations: 0,
+        best_iteration: None,
     }
 }
 
@@ -450,7 +460,13 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
     }
     let flows = flows_from(sim, |k, p| transforms[k].apply(p));
     let end_positions = sim.frames[0].iter().map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q))).collect();
-    Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64() }
+    Prediction {
+        flows,
+        end_positions,
+        fit_seconds: started.elapsed().as_secs_f64(),
+        iterations: 0,
+        best_iteration: None,
+    }
 }
 
 /// The static world seen through the sensor poses (when known): every point keeps its world
@@ -463,7 +479,7 @@ fn ego_poses_motion(sim: &Labelled) -> anyhow::Result<Option<Prediction>> {
     let t = sim.frames.len();
     let flows = flows_from(sim, |k, p| moved(k, k + 1, p));
     let end_positions = sim.frames[0].iter().map(|p| moved(0, t - 1, p)).collect();
-    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0 }))
+    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0, iterations: 0, best_iteration: None }))
 }
 
 /// Scene flows k -> k+1 of every frame's points, given where a point of frame k lands in k+1.
@@ -489,14 +505,28 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
     let model = fit_sequence(&sequence, method, &params, &mut |p| {
         if last_print.elapsed().as_secs_f64() > 10.0 {
             last_print = std::time::Instant::now();
-            eprintln!("  {} iteration {}/{} loss {:.5}", method.name(), p.iteration, p.iterations, p.loss.total);
+            let best = p.best_validation_loss.unwrap_or(f64::NAN);
+            eprintln!(
+                "  {} iteration {}/{} loss {:.5} (best validation {best:.5})",
+                method.name(),
+                p.iteration,
+                p.iterations,
+                p.loss.total
+            );
         }
         ControlFlow::Continue(())
     })?;
     let flows = model.scene_flow(&sequence.frames);
     let ts = &sim.timestamps_s;
     let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
-    Ok(Prediction { flows, end_positions, fit_seconds: model.report().fit_seconds })
+    let report = model.report();
+    Ok(Prediction {
+        flows,
+        end_positions,
+        fit_seconds: report.fit_seconds,
+        iterations: report.iterations,
+        best_iteration: report.best_iteration,
+    })
 }
 
 /// Runs `mbnt eval` and prints a table (and JSON when asked).
@@ -553,7 +583,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 
 fn print_table(results: &[MethodResult]) {
     println!(
-        "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} {:>6} | {:>8}",
+        "{:<12} {:>10} | {:>7} {:>7} {:>7} {:>7} {:>6} | {:>7} {:>6} {:>6} | {:>6} {:>6} {:>6} | {:>8} {:>11}",
         "method",
         "sequence",
         "EPE",
@@ -567,11 +597,12 @@ fn print_table(results: &[MethodResult]) {
         "St.5",
         "Dyn.5",
         "Out.5",
-        "fit s"
+        "fit s",
+        "iter (best)"
     );
     for r in results {
         println!(
-            "{:<12} {:>10} | {:>7.4} {:>7.2} {:>7.2} {:>7.2} {:>6.3} | {:>7.3} {:>6.2} {:>6.2} | {:>6.2} {:>6.2} {:>6.2} | {:>8.1}",
+            "{:<12} {:>10} | {:>7.4} {:>7.2} {:>7.2} {:>7.2} {:>6.3} | {:>7.3} {:>6.2} {:>6.2} | {:>6.2} {:>6.2} {:>6.2} | {:>8.1} {:>11}",
             r.method,
             r.sequence,
             r.scene_flow.epe_m,
@@ -585,7 +616,12 @@ fn print_table(results: &[MethodResult]) {
             100.0 * r.long_term_static.acc_0_5,
             100.0 * r.long_term_dynamic.acc_0_5,
             100.0 * r.long_term_outside.acc_0_5,
-            r.fit_seconds
+            r.fit_seconds,
+            match r.best_iteration {
+                Some(best) => format!("{} ({best})", r.iterations),
+                None if r.iterations > 0 => r.iterations.to_string(),
+                None => "-".to_string(),
+            }
         );
     }
     for r in results.iter().filter(|r| !BASELINES.contains(&r.method.as_str()) && !r.moving_objects.is_empty()) {
@@ -667,7 +703,13 @@ mod tests {
     }
 
     fn truth_of(seq: &Labelled) -> Prediction {
-        Prediction { flows: seq.flows.clone(), end_positions: seq.end_positions.clone(), fit_seconds: 0.0 }
+        Prediction {
+            flows: seq.flows.clone(),
+            end_positions: seq.end_positions.clone(),
+            fit_seconds: 0.0,
+            iterations: 0,
+            best_iteration: None,
+        }
     }
 
     #[test]
@@ -717,6 +759,8 @@ mod tests {
                 .map(|(g, s)| [0, 1, 2].map(|c| 0.5 * (g[c] + s[c])))
                 .collect(),
             fit_seconds: 0.0,
+            iterations: 0,
+            best_iteration: None,
         };
         for o in &score("half", &seq, &evaluated, &half, Some(&still)).moving_objects {
             assert!((o.scene_flow_captured - 0.5).abs() < 1e-3, "{o:?}");

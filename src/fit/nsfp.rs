@@ -121,7 +121,7 @@ fn pair_loss(
                 }
             };
             let power = params.power_iterations;
-            if let Some(value) = s.rigidity.loss(params.pair_d_thr_m, power, weight, |i| moved[i], add_grad) {
+            if let Some(value) = s.rigidity.loss(params.pair_d_thr_m, 0.0, power, weight, |i| moved[i], add_grad) {
                 terms.rigidity += value.loss / p1.clusters.len() as f64;
             }
         }

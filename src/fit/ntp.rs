@@ -54,6 +54,11 @@ struct Scratch {
     other_velocities: Vec<f32>,
     grad_other: Vec<f32>,
     grad_input: Vec<f32>,
+    /// Rows of the reference frame the cycle terms use, their points, velocities and gradient.
+    cycle_index: Vec<usize>,
+    cycle_points: Vec<Point>,
+    cycle_velocities: Vec<f32>,
+    cycle_grad: Vec<f32>,
     moved: Vec<Point>,
     grad_moved: Vec<Point>,
     primary: Workspace<f32>,
@@ -157,50 +162,80 @@ impl Problem<'_> {
             }
         }
 
-        // Cycle consistency: the trajectory predicted from a moved copy must agree.
+        // Cycle consistency: the trajectory predicted from a moved copy must agree. Evaluated on
+        // `cycle_sample_points` points drawn with replacement (all points, in order, when 0).
         let middle = frames / 2;
         let cycle_weight = self.params.cycle_weight;
+        let cycle_rows = match self.params.cycle_sample_points {
+            0 => n,
+            c => c.min(n),
+        };
+        s.cycle_index.clear();
+        if cycle_rows == n {
+            s.cycle_index.extend(0..n);
+        } else if validation {
+            // A fixed, evenly spread subset, so validation losses stay comparable.
+            s.cycle_index.extend((0..cycle_rows).map(|j| j * n / cycle_rows));
+        } else {
+            s.cycle_index.extend((0..cycle_rows).map(|_| rng.random_range(0..n)));
+        }
+        s.cycle_points.clear();
+        s.cycle_points.extend(s.cycle_index.iter().map(|&i| x[i]));
+        s.cycle_velocities.clear();
+        for &i in &s.cycle_index {
+            s.cycle_velocities.extend_from_slice(&s.velocities[i * width..][..width]);
+        }
+        s.cycle_grad.clear();
+        s.cycle_grad.resize(cycle_rows * width, 0.0);
+        let cycle_gflop = 2.0 * cycle_rows as f64 * self.macs_per_row * 1e-9;
         for target in [(t + 1).min(frames - 1), t.saturating_sub(1), middle] {
             if target == t || cycle_weight == 0.0 {
                 // V(x, t) against itself: zero value and gradient, still one of the three terms.
                 continue;
             }
             let clock = Instant::now();
-            move_points(x, &s.velocities, width, t, target, &mut s.moved);
+            move_points(&s.cycle_points, &s.cycle_velocities, width, t, target, &mut s.moved);
             encode_points(&s.moved, target as f64, frames, &mut s.input);
             s.times.cycle_s += clock.elapsed().as_secs_f64();
             let clock = Instant::now();
-            let other = mlp.forward(&s.input, n, &mut s.secondary);
+            let other = mlp.forward(&s.input, cycle_rows, &mut s.secondary);
             s.other_velocities.clear();
             s.other_velocities.extend_from_slice(other);
             s.times.mlp_forward_s += clock.elapsed().as_secs_f64();
-            s.times.mlp_gflop += pass_gflop;
+            s.times.mlp_gflop += cycle_gflop;
             let clock = Instant::now();
             s.grad_other.clear();
-            s.grad_other.resize(n * width, 0.0);
+            s.grad_other.resize(cycle_rows * width, 0.0);
             let value = mean_squared_difference(
-                &s.velocities,
+                &s.cycle_velocities,
                 &s.other_velocities,
                 cycle_weight,
-                &mut s.grad_velocities,
+                &mut s.cycle_grad,
                 &mut s.grad_other,
             );
             terms.cycle += f64::from(value);
             s.grad_input.clear();
-            s.grad_input.resize(n * input_width(frames), 0.0);
+            s.grad_input.resize(cycle_rows * input_width(frames), 0.0);
             s.times.cycle_s += clock.elapsed().as_secs_f64();
             let clock = Instant::now();
             mlp.backward(&mut s.secondary, &s.grad_other, grads, Some(&mut s.grad_input[..]));
             s.times.mlp_backward_s += clock.elapsed().as_secs_f64();
-            s.times.mlp_gflop += 2.0 * pass_gflop;
+            s.times.mlp_gflop += 2.0 * cycle_gflop;
             let clock = Instant::now();
             // The moved points depend on the primary velocities between t and target.
             let in_width = input_width(frames);
-            for i in 0..n {
-                let g = &s.grad_input[i * in_width..][..3];
-                add_along_path(&mut s.grad_velocities[i * width..][..width], t, target, g);
+            for r in 0..cycle_rows {
+                let g = &s.grad_input[r * in_width..][..3];
+                add_along_path(&mut s.cycle_grad[r * width..][..width], t, target, g);
             }
             s.times.cycle_s += clock.elapsed().as_secs_f64();
+        }
+        // Rows drawn twice add up, as the estimate's gradient should.
+        for (r, &i) in s.cycle_index.iter().enumerate() {
+            let row = &mut s.grad_velocities[i * width..][..width];
+            for (g, c) in row.iter_mut().zip(&s.cycle_grad[r * width..][..width]) {
+                *g += c;
+            }
         }
 
         // Multi-body rigidity of frame t's clusters projected to the first and last frames.
@@ -228,7 +263,8 @@ impl Problem<'_> {
                             add_along_path(&mut grad_velocities[i * width..][..width], t, target, g);
                         };
                         let power = self.params.power_iterations;
-                        if let Some(value) = s.rigidity.loss(d_thr, power, weight, moved_of, add_grad) {
+                        let relative = self.params.d_thr_motion_fraction;
+                        if let Some(value) = s.rigidity.loss(d_thr, relative, power, weight, moved_of, add_grad) {
                             terms.rigidity += value.loss / clusters.len() as f64;
                         }
                     }
@@ -339,7 +375,9 @@ pub fn fit_trajectory(
             if best.as_ref().is_none_or(|(b, _, _)| loss < *b) {
                 best = Some((loss, iteration, mlp.clone()));
                 validations_since_best = 0;
-            } else {
+            } else if !rigidity || iteration >= params.rigidity_warmup_iterations {
+                // While the multi-body weight still ramps up the objective itself changes, so
+                // patience only counts validations from the end of the warm-up on.
                 validations_since_best += 1;
             }
         }

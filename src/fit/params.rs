@@ -100,7 +100,8 @@ pub struct FitParams {
     /// drawn at random (0 = all points; fast default 8192, faithful 0).
     pub sample_points: Option<usize>,
     /// Trajectory methods: stop once this many validations in a row did not improve the best
-    /// validation loss (0 = never; fast default 8, faithful 0).
+    /// validation loss (0 = never; fast default 8, faithful 0). MBNT counts them from the end of
+    /// the rigidity warm-up on.
     pub validation_patience: Option<usize>,
     /// Optimiser iterations: 1001 for NTP/MBNT; at most 1000 per pair for NSFP/MBNSF.
     pub iterations: Option<usize>,
@@ -158,6 +159,17 @@ pub struct FitParams {
     /// rigidity holds clusters together (at full strength from the start, it is satisfied fastest
     /// by a globally rigid drift). The validation loss always uses the full weight.
     pub rigidity_warmup_iterations: Option<usize>,
+    /// **Ours (fast default 2048, faithful 0 = all):** trajectory methods evaluate the three
+    /// cycle-consistency terms of a reference frame on this many of its points, drawn at random
+    /// each time (an unbiased estimate of the mean; the three extra network passes are three
+    /// quarters of an iteration's work).
+    pub cycle_sample_points: Option<usize>,
+    /// **Ours (fast default 0.05, faithful 0):** MBNT's rigidity threshold of a cluster grows by
+    /// this share of the length of the cluster's mean predicted displacement (m per m travelled,
+    /// a constant of each evaluation). A body standing still is exactly rigid whatever its velocity
+    /// error, while one travelling 20 m deviates by 0.2 m at 1 % velocity error: with a fixed
+    /// threshold the term holds moving bodies still. Static clusters keep the fixed threshold.
+    pub d_thr_motion_fraction: Option<f32>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -234,6 +246,12 @@ pub struct ValidFitParams {
     /// See [`FitParams::rigidity_warmup_iterations`].
     #[serde(default)]
     pub rigidity_warmup_iterations: usize,
+    /// See [`FitParams::cycle_sample_points`] (0 = all).
+    #[serde(default)]
+    pub cycle_sample_points: usize,
+    /// See [`FitParams::d_thr_motion_fraction`].
+    #[serde(default)]
+    pub d_thr_motion_fraction: f32,
 }
 
 fn default_true() -> bool {
@@ -318,6 +336,20 @@ impl FitParams {
                 0,
                 MAX_ITERATIONS,
             )?,
+            cycle_sample_points: int_in(
+                "cycle_sample_points",
+                self.cycle_sample_points,
+                if fast { 2048 } else { 0 },
+                0,
+                10_000_000,
+            )?,
+            d_thr_motion_fraction: float_in(
+                "d_thr_motion_fraction",
+                self.d_thr_motion_fraction,
+                if fast { 0.05 } else { 0.0 },
+                0.0,
+                10.0,
+            )?,
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }
@@ -335,6 +367,8 @@ mod tests {
         assert_eq!(p.max_cluster_points, 3000);
         assert_eq!(p.validation_patience, 0);
         assert_eq!(p.rigidity_warmup_iterations, 0);
+        assert_eq!(p.cycle_sample_points, 0);
+        assert_eq!(p.d_thr_motion_fraction, 0.0);
         assert_eq!(p.learning_rate, 0.003);
         assert_eq!(p.dbscan_min_points, 30);
         assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations, 1000);

@@ -116,6 +116,16 @@ fn mbnt_with_a_rigidity_warm_up_still_recovers_two_rigid_motions() {
 }
 
 #[test]
+fn mbnt_with_a_fixed_rigidity_threshold_still_recovers_two_rigid_motions() {
+    let base = params_of(&small_params(Method::Mbnt, 300));
+    let params =
+        FitParams { iterations: Some(300), d_thr_motion_fraction: Some(0.0), ..base }.check(Method::Mbnt).unwrap();
+    let m = long_term_accuracy_with(Method::Mbnt, params);
+    assert!(m.epe_m < 0.25, "{m:?}");
+    assert!(m.acc_0_5 > 0.9, "{m:?}");
+}
+
+#[test]
 fn ntp_recovers_two_rigid_motions_over_five_frames() {
     let m = long_term_accuracy(Method::Ntp, 300);
     eprintln!("NTP two bodies: {m:?}");
@@ -141,11 +151,14 @@ fn fast_mode_fitting_random_parts_still_recovers_the_motions() {
         hidden_width: Some(64),
         dbscan_min_points: Some(10),
         sample_points: Some(200),
+        // The cycle terms on a random quarter of each part.
+        cycle_sample_points: Some(50),
         validation_patience: Some(0),
         ..FitParams::default()
     }
     .check(Method::Mbnt)
     .unwrap();
+    assert!(params.d_thr_motion_fraction > 0.0, "fast mode's default");
     let m = long_term_accuracy_with(Method::Mbnt, params.clone());
     eprintln!("MBNT on parts: {m:?}");
     // Sparser Chamfer targets (about 0.3 m spacing instead of 0.15 m) loosen the fit a little.
@@ -168,6 +181,8 @@ fn params_of(p: &ValidFitParams) -> FitParams {
         dbscan_min_points: Some(p.dbscan_min_points),
         sample_points: Some(p.sample_points),
         validation_patience: Some(p.validation_patience),
+        cycle_sample_points: Some(p.cycle_sample_points),
+        d_thr_motion_fraction: Some(p.d_thr_motion_fraction),
         ..FitParams::default()
     }
 }
@@ -217,6 +232,31 @@ fn progress_reports_every_iteration_and_cancel_stops_the_fit() {
     });
     assert!(matches!(result, Err(FitError::Cancelled { iteration: 7 })));
     assert_eq!(seen, (1..=7).collect::<Vec<_>>());
+}
+
+#[test]
+fn early_stopping_waits_for_the_end_of_the_rigidity_warm_up() {
+    let (sequence, _) = two_bodies(3, 100, 4);
+    let base = params_of(&small_params(Method::Mbnt, 200));
+    // Patience of two validations, one validation per iteration: without the rule a fit stops
+    // at the first two validations in a row that do not improve on the best.
+    let params = FitParams {
+        iterations: Some(200),
+        validate_every: Some(1),
+        validation_patience: Some(2),
+        rigidity_warmup_iterations: Some(40),
+        ..base
+    };
+    for method in [Method::Mbnt, Method::Ntp] {
+        let p = params.check(method).unwrap();
+        let model = fit_sequence(&sequence, method, &p, &mut |_| ControlFlow::Continue(())).unwrap();
+        let report = model.report();
+        let best = report.best_iteration.unwrap();
+        assert!(report.iterations == 200 || report.iterations - 1 >= best + 2, "{method:?}: {report:?}");
+        if method == Method::Mbnt {
+            assert!(report.iterations > 40, "stopped inside the warm-up: {report:?}");
+        }
+    }
 }
 
 #[test]
