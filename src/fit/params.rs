@@ -149,10 +149,11 @@ pub struct FitParams {
     /// frame's ego motion removed, so static points stand still (default true). Answers stay
     /// in the sensor frame of the time they refer to either way.
     pub use_poses: Option<bool>,
-    /// **Ours, off by default:** start the network's output layer at zero, so the initial field
-    /// is "nothing moves" (in the fit's coordinates: the static world when poses are used)
-    /// instead of PyTorch's random initial velocities; points and times that no loss term
-    /// reaches keep that answer instead of the random one.
+    /// **Ours (default true for MBNT in fast mode, false otherwise):** start the network's output
+    /// layer at zero, so the initial field is "nothing moves" (in the fit's coordinates: the
+    /// static world when poses are used) instead of PyTorch's random initial velocities; the slide
+    /// along facades that Chamfer cannot see then has nothing to start from, and points and times
+    /// that no loss term reaches keep that answer instead of the random one.
     pub zero_output_init: Option<bool>,
     /// **Ours (fast default 250, faithful 0 = off):** MBNT's multi-body gradient grows linearly
     /// from 0 to its full weight over this many iterations, so Chamfer can place the scene before
@@ -328,7 +329,7 @@ impl FitParams {
             early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
             use_poses: self.use_poses.unwrap_or(true),
-            zero_output_init: self.zero_output_init.unwrap_or(false),
+            zero_output_init: self.zero_output_init.unwrap_or(fast && method == Method::Mbnt),
             rigidity_warmup_iterations: int_in(
                 "rigidity_warmup_iterations",
                 self.rigidity_warmup_iterations,
@@ -369,6 +370,9 @@ mod tests {
         assert_eq!(p.rigidity_warmup_iterations, 0);
         assert_eq!(p.cycle_sample_points, 0);
         assert_eq!(p.d_thr_motion_fraction, 0.0);
+        assert!(!p.zero_output_init);
+        assert!(FitParams::default().check(Method::Mbnt).unwrap().zero_output_init);
+        assert!(!FitParams::default().check(Method::Ntp).unwrap().zero_output_init);
         assert_eq!(p.learning_rate, 0.003);
         assert_eq!(p.dbscan_min_points, 30);
         assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations, 1000);
