@@ -252,7 +252,7 @@ fn early_stopping_waits_for_the_end_of_the_rigidity_warm_up() {
         let model = fit_sequence(&sequence, method, &p, &mut |_| ControlFlow::Continue(())).unwrap();
         let report = model.report();
         let best = report.best_iteration.unwrap();
-        assert!(report.iterations == 200 || report.iterations - 1 >= best + 2, "{method:?}: {report:?}");
+        assert!(report.iterations == 200 || report.iterations > best + 2, "{method:?}: {report:?}");
         if method == Method::Mbnt {
             assert!(report.iterations > 40, "stopped inside the warm-up: {report:?}");
         }
