@@ -281,7 +281,9 @@ fn as_bool(a: NpyArray) -> Option<Vec<bool>> {
     }
 }
 
-/// Predicted scene flows (per pair) and end positions of frame 0's points at frame T-1.
+/// Predicted scene flows (per pair) and end positions of frame 0's points at frame T-1; the fit
+/// fields stay 0 / `None` for baselines.
+#[derive(Default)]
 struct Prediction {
     flows: Vec<Vec<Point>>,
     end_positions: Vec<Point>,
@@ -439,8 +441,7 @@ fn zero_motion(sim: &Labelled) -> Prediction {
         flows: sim.frames[..sim.frames.len() - 1].iter().map(|f| vec![[0.0; 3]; f.len()]).collect(),
         end_positions: sim.frames[0].clone(),
         fit_seconds: 0.0,
-        iterations: 0,
-        best_iteration: None,
+        ..Default::default()
     }
 }
 
@@ -460,13 +461,7 @@ fn rigid_frame_motion(sim: &Labelled) -> Prediction {
     }
     let flows = flows_from(sim, |k, p| transforms[k].apply(p));
     let end_positions = sim.frames[0].iter().map(|p| transforms.iter().fold(*p, |q, tr| tr.apply(&q))).collect();
-    Prediction {
-        flows,
-        end_positions,
-        fit_seconds: started.elapsed().as_secs_f64(),
-        iterations: 0,
-        best_iteration: None,
-    }
+    Prediction { flows, end_positions, fit_seconds: started.elapsed().as_secs_f64(), ..Default::default() }
 }
 
 /// The static world seen through the sensor poses (when known): every point keeps its world
@@ -479,7 +474,7 @@ fn ego_poses_motion(sim: &Labelled) -> anyhow::Result<Option<Prediction>> {
     let t = sim.frames.len();
     let flows = flows_from(sim, |k, p| moved(k, k + 1, p));
     let end_positions = sim.frames[0].iter().map(|p| moved(0, t - 1, p)).collect();
-    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0, iterations: 0, best_iteration: None }))
+    Ok(Some(Prediction { flows, end_positions, fit_seconds: 0.0, ..Default::default() }))
 }
 
 /// Scene flows k -> k+1 of every frame's points, given where a point of frame k lands in k+1.
@@ -707,8 +702,7 @@ mod tests {
             flows: seq.flows.clone(),
             end_positions: seq.end_positions.clone(),
             fit_seconds: 0.0,
-            iterations: 0,
-            best_iteration: None,
+            ..Default::default()
         }
     }
 
@@ -759,8 +753,7 @@ mod tests {
                 .map(|(g, s)| [0, 1, 2].map(|c| 0.5 * (g[c] + s[c])))
                 .collect(),
             fit_seconds: 0.0,
-            iterations: 0,
-            best_iteration: None,
+            ..Default::default()
         };
         for o in &score("half", &seq, &evaluated, &half, Some(&still)).moving_objects {
             assert!((o.scene_flow_captured - 0.5).abs() < 1e-3, "{o:?}");
