@@ -498,7 +498,17 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
         Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: sim.poses.clone() };
     let mut last_print = std::time::Instant::now();
     let model = fit_sequence(&sequence, method, &params, &mut |p| {
-        if last_print.elapsed().as_secs_f64() > 10.0 {
+        if let Some(v) = &p.validation_loss {
+            eprintln!(
+                "  {} validation at iteration {}: loss {:.5} = chamfer {:.5} + cycle {:.5} + rigidity {:.5}",
+                method.name(),
+                p.iteration - 1,
+                v.total,
+                v.chamfer,
+                v.cycle,
+                v.rigidity
+            );
+        } else if last_print.elapsed().as_secs_f64() > 10.0 {
             last_print = std::time::Instant::now();
             let best = p.best_validation_loss.unwrap_or(f64::NAN);
             eprintln!(

@@ -82,6 +82,9 @@ pub struct Progress {
     pub loss: LossTerms,
     /// Best validation loss so far, if a validation pass has run.
     pub best_validation_loss: Option<f64>,
+    /// The loss terms of this iteration's validation pass (mean over frames 0..T-2, before the
+    /// update), when it was a validation iteration of a trajectory fit.
+    pub validation_loss: Option<LossTerms>,
 }
 
 /// Why a fit did not produce a model.

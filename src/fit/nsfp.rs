@@ -190,6 +190,7 @@ pub fn fit_pairs(
                 iterations: total_iterations,
                 loss: terms,
                 best_validation_loss: Some(best.0),
+                validation_loss: None,
             };
             if on_progress(&progress).is_break() {
                 return Err(FitError::Cancelled { iteration: done });

@@ -355,14 +355,17 @@ pub fn fit_trajectory(
             warmup => (iteration as f32 / warmup as f32).min(1.0),
         };
         let mut sum = LossTerms::default();
-        let mut validation_sum = 0.0;
+        let mut validation_terms = LossTerms::default();
         for &t in &references {
             let terms = problem.reference_frame(&mlp, t, validation, ramp, &mut grads, &mut scratch, &mut rng);
             if !terms.total.is_finite() {
                 return Err(FitError::Diverged { iteration, loss: terms.total });
             }
             if t + 1 < t_count {
-                validation_sum += terms.total;
+                validation_terms.chamfer += terms.chamfer;
+                validation_terms.cycle += terms.cycle;
+                validation_terms.rigidity += terms.rigidity;
+                validation_terms.total += terms.total;
             }
             sum.chamfer += terms.chamfer;
             sum.cycle += terms.cycle;
@@ -371,7 +374,14 @@ pub fn fit_trajectory(
         }
         if validation {
             // Measured before this iteration's update: the checkpoint is the current weights.
-            let loss = validation_sum / (t_count - 1) as f64;
+            let frames = (t_count - 1) as f64;
+            validation_terms = LossTerms {
+                chamfer: validation_terms.chamfer / frames,
+                cycle: validation_terms.cycle / frames,
+                rigidity: validation_terms.rigidity / frames,
+                total: validation_terms.total / frames,
+            };
+            let loss = validation_terms.total;
             if best.as_ref().is_none_or(|(b, _, _)| loss < *b) {
                 best = Some((loss, iteration, mlp.clone()));
                 validations_since_best = 0;
@@ -396,6 +406,7 @@ pub fn fit_trajectory(
                 total: sum.total / r,
             },
             best_validation_loss: best.as_ref().map(|b| b.0),
+            validation_loss: validation.then_some(validation_terms),
         };
         tracing::debug!(iteration, loss = progress.loss.total, "trajectory iteration");
         if on_progress(&progress).is_break() {

@@ -26,8 +26,13 @@ impl Fitter for SlowFitter {
     ) -> Result<FittedModel, FitError> {
         for iteration in 1..=self.steps {
             std::thread::sleep(self.step);
-            let p =
-                Progress { iteration, iterations: self.steps, loss: LossTerms::default(), best_validation_loss: None };
+            let p = Progress {
+                iteration,
+                iterations: self.steps,
+                loss: LossTerms::default(),
+                best_validation_loss: None,
+                validation_loss: None,
+            };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });
             }
