@@ -36,6 +36,7 @@ impl Fitter for SlowFitter {
                 iterations: self.steps,
                 loss: LossTerms { chamfer: 1.0 / iteration as f64, ..LossTerms::default() },
                 best_validation_loss: None,
+                validation_loss: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });
