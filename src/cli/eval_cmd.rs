@@ -500,13 +500,15 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
     let model = fit_sequence(&sequence, method, &params, &mut |p| {
         if let Some(v) = &p.validation_loss {
             eprintln!(
-                "  {} validation at iteration {}: loss {:.5} = chamfer {:.5} + cycle {:.5} + rigidity {:.5}",
+                "  {} validation at iteration {}: loss {:.5} = chamfer {:.5} + cycle {:.5} + rigidity {:.5}; \
+                 fewest live units of a layer {}",
                 method.name(),
                 p.iteration - 1,
                 v.total,
                 v.chamfer,
                 v.cycle,
-                v.rigidity
+                v.rigidity,
+                p.fewest_live_units.map_or_else(|| "-".to_string(), |u| u.to_string()),
             );
         } else if last_print.elapsed().as_secs_f64() > 10.0 {
             last_print = std::time::Instant::now();

@@ -85,6 +85,10 @@ pub struct Progress {
     /// The loss terms of this iteration's validation pass (mean over frames 0..T-2, before the
     /// update), when it was a validation iteration of a trajectory fit.
     pub validation_loss: Option<LossTerms>,
+    /// On a validation iteration of a trajectory fit: the fewest live hidden units of any layer
+    /// (units positive for at least one of frame 0's validation points). 0 means the network has
+    /// collapsed to a constant function, which no further step can undo.
+    pub fewest_live_units: Option<usize>,
 }
 
 /// Why a fit did not produce a model.

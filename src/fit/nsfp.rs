@@ -191,6 +191,7 @@ pub fn fit_pairs(
                 loss: terms,
                 best_validation_loss: Some(best.0),
                 validation_loss: None,
+                fewest_live_units: None,
             };
             if on_progress(&progress).is_break() {
                 return Err(FitError::Cancelled { iteration: done });

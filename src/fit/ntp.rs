@@ -66,6 +66,8 @@ struct Scratch {
     chamfer: ChamferScratch,
     rigidity: ClusterRigidity,
     times: PhaseTimes,
+    /// Fewest live hidden units of a layer on frame 0's last validation pass.
+    fewest_live_units: Option<usize>,
 }
 
 /// Everything an iteration reads: prepared frames and the fixed parameters.
@@ -122,6 +124,11 @@ impl Problem<'_> {
         s.times.mlp_gflop += pass_gflop;
         s.velocities.clear();
         s.velocities.extend_from_slice(out);
+        if validation && t == 0 {
+            let live = s.primary.live_hidden_units();
+            tracing::debug!(?live, "live hidden units per layer on frame 0's validation points");
+            s.fewest_live_units = live.into_iter().min();
+        }
         s.grad_velocities.clear();
         s.grad_velocities.resize(n * width, 0.0);
 
@@ -324,6 +331,7 @@ pub fn fit_trajectory(
     let t_count = frames.len();
     let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
     let mut mlp = Mlp::<f32>::new(&trajectory_dims(t_count, params), &mut rng);
+    mlp.set_negative_slope(params.hidden_negative_slope);
     if params.zero_output_init {
         mlp.zero_output_layer();
     }
@@ -407,6 +415,7 @@ pub fn fit_trajectory(
             },
             best_validation_loss: best.as_ref().map(|b| b.0),
             validation_loss: validation.then_some(validation_terms),
+            fewest_live_units: if validation { scratch.fewest_live_units } else { None },
         };
         tracing::debug!(iteration, loss = progress.loss.total, "trajectory iteration");
         if on_progress(&progress).is_break() {

@@ -171,6 +171,11 @@ pub struct FitParams {
     /// error, while one travelling 20 m deviates by 0.2 m at 1 % velocity error: with a fixed
     /// threshold the term holds moving bodies still. Static clusters keep the fixed threshold.
     pub d_thr_motion_fraction: Option<f32>,
+    /// **Ours (default 0 = ReLU, as method.md):** trajectory methods use a leaky ReLU with this
+    /// slope for negative inputs in the hidden layers, in [0, 1). With ReLU the multi-body and
+    /// cycle terms, which are smallest for a field that does not vary, can drive a whole layer to
+    /// zero for every input; the network is then constant and no gradient reaches it again.
+    pub hidden_negative_slope: Option<f32>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -253,6 +258,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::d_thr_motion_fraction`].
     #[serde(default)]
     pub d_thr_motion_fraction: f32,
+    /// See [`FitParams::hidden_negative_slope`] (0 = ReLU).
+    #[serde(default)]
+    pub hidden_negative_slope: f32,
 }
 
 fn default_true() -> bool {
@@ -351,6 +359,7 @@ impl FitParams {
                 0.0,
                 10.0,
             )?,
+            hidden_negative_slope: float_in("hidden_negative_slope", self.hidden_negative_slope, 0.0, 0.0, 0.99)?,
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

@@ -32,6 +32,7 @@ impl Fitter for SlowFitter {
                 loss: LossTerms::default(),
                 best_validation_loss: None,
                 validation_loss: None,
+                fewest_live_units: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });

@@ -99,7 +99,7 @@ mod tests {
 
     /// A 1-input, 1-output linear network: parameters are [w, b].
     fn two_parameter_net(w: f64, b: f64) -> Mlp<f64> {
-        Mlp { dims: vec![1, 1], params: vec![w, b] }
+        Mlp { dims: vec![1, 1], params: vec![w, b], negative_slope: 0.0 }
     }
 
     fn grads_of(mlp: &Mlp<f64>, values: [f64; 2]) -> Gradients<f64> {
@@ -145,7 +145,7 @@ mod tests {
 
     #[test]
     fn adam_in_f32_follows_the_f64_trajectory() {
-        let mut m32 = Mlp::<f32> { dims: vec![1, 1], params: vec![0.3, 0.7] };
+        let mut m32 = Mlp::<f32> { dims: vec![1, 1], params: vec![0.3, 0.7], negative_slope: 0.0 };
         let mut m64 = m32.cast::<f64>();
         let mut a32 = Adam::new(&m32, 0.01);
         let mut a64 = Adam::new(&m64, 0.01);

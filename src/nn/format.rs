@@ -1,15 +1,17 @@
 //! A versioned little-endian byte format for f32 networks (checkpoints, fitted models).
 //!
-//! Layout, version 1 (all integers little-endian):
+//! Layout, version 2 (all integers little-endian):
 //! ```text
 //! magic       8 bytes  b"MBNTMLP\0"
-//! version     u32      1
+//! version     u32      2
 //! n_dims      u32      number of widths (2..=64)
 //! dims        u32 × n_dims, each 1..=65536
+//! slope       f32      the hidden activation's negative slope, in [0, 1) (0 = ReLU)
 //! n_params    u64      must equal Σ (in·out + out) over layers
 //! params      f32 × n_params, the layout of `Mlp::parameters`, all finite
 //! checksum    u64      FNV-1a 64 of every preceding byte
 //! ```
+//! Version 1 is the same without `slope` (ReLU networks) and is still read.
 //! Decoding checks every length against the bytes actually present before allocating, so a bogus
 //! header can never cause a large allocation; any corruption is an error, never a panic.
 
@@ -17,8 +19,8 @@ use super::Mlp;
 use super::mlp::parameter_count;
 
 const MAGIC: &[u8; 8] = b"MBNTMLP\0";
-/// The format version this build writes and reads.
-const FORMAT_VERSION: u32 = 1;
+/// The format version this build writes (it reads this one and version 1).
+const FORMAT_VERSION: u32 = 2;
 const MAX_DIMS: usize = 64;
 const MAX_WIDTH: usize = 1 << 16;
 
@@ -103,6 +105,7 @@ impl Mlp<f32> {
         for &d in &self.dims {
             out.extend_from_slice(&(d as u32).to_le_bytes());
         }
+        out.extend_from_slice(&self.negative_slope.to_le_bytes());
         out.extend_from_slice(&(self.params.len() as u64).to_le_bytes());
         for p in &self.params {
             out.extend_from_slice(&p.to_le_bytes());
@@ -124,7 +127,7 @@ impl Mlp<f32> {
             return Err(FormatError::BadMagic);
         }
         let version = r.u32()?;
-        if version != FORMAT_VERSION {
+        if version != FORMAT_VERSION && version != 1 {
             return Err(FormatError::UnsupportedVersion { found: version, supported: FORMAT_VERSION });
         }
         let n_dims = r.u32()? as usize;
@@ -137,6 +140,16 @@ impl Mlp<f32> {
         if let Some(d) = dims.iter().find(|&&d| d == 0 || d > MAX_WIDTH) {
             return Err(FormatError::InvalidShape(format!("width {d} (1..={MAX_WIDTH} allowed)")));
         }
+        let negative_slope = if version >= 2 {
+            let b = r.take(4)?;
+            let slope = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            if !(0.0..1.0).contains(&slope) {
+                return Err(FormatError::InvalidShape(format!("negative slope {slope} (0..1 allowed)")));
+            }
+            slope
+        } else {
+            0.0
+        };
         let count =
             parameter_count(&dims).ok_or_else(|| FormatError::InvalidShape("parameter count overflows".into()))?;
         let stored = r.u64()?;
@@ -158,7 +171,7 @@ impl Mlp<f32> {
         if let Some(index) = params.iter().position(|p| !p.is_finite()) {
             return Err(FormatError::NonFinite { index });
         }
-        Ok(Mlp { dims, params })
+        Ok(Mlp { dims, params, negative_slope })
     }
 }
 
@@ -181,8 +194,10 @@ mod tests {
         p[1] = f32::MIN_POSITIVE / 3.0;
         p[2] = f32::MAX;
         p[3] = -f32::MIN_POSITIVE;
+        mlp.set_negative_slope(0.01);
         let back = Mlp::from_bytes(&mlp.to_bytes()).unwrap();
         assert_eq!(back.dims(), mlp.dims());
+        assert_eq!(back.negative_slope(), 0.01);
         let bits = |m: &Mlp<f32>| m.parameters().iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&back), bits(&mlp));
     }
@@ -202,8 +217,8 @@ mod tests {
         b[0] = b'X';
         assert_eq!(Mlp::from_bytes(&b).unwrap_err(), FormatError::BadMagic);
         let mut b = bytes.clone();
-        b[8..12].copy_from_slice(&2u32.to_le_bytes());
-        assert_eq!(Mlp::from_bytes(&b).unwrap_err(), FormatError::UnsupportedVersion { found: 2, supported: 1 });
+        b[8..12].copy_from_slice(&3u32.to_le_bytes());
+        assert_eq!(Mlp::from_bytes(&b).unwrap_err(), FormatError::UnsupportedVersion { found: 3, supported: 2 });
         let mut b = bytes.clone();
         b.push(0);
         assert_eq!(Mlp::from_bytes(&b).unwrap_err(), FormatError::TrailingBytes(1));
@@ -259,6 +274,38 @@ mod tests {
                 assert!(Mlp::from_bytes(&b).is_err());
             }
         }
+    }
+
+    /// Version 1 bytes of `mlp`: version 2 without the slope field, checksum recomputed.
+    fn version_1_bytes(mlp: &Mlp<f32>) -> Vec<u8> {
+        let v2 = mlp.to_bytes();
+        let slope_at = 16 + 4 * mlp.dims().len();
+        let mut b = v2[..slope_at].to_vec();
+        b[8..12].copy_from_slice(&1u32.to_le_bytes());
+        b.extend_from_slice(&v2[slope_at + 4..v2.len() - 8]);
+        let checksum = fnv1a64(&b);
+        b.extend_from_slice(&checksum.to_le_bytes());
+        b
+    }
+
+    #[test]
+    fn version_1_files_read_as_relu_networks() {
+        let mlp = model();
+        let back = Mlp::from_bytes(&version_1_bytes(&mlp)).unwrap();
+        assert_eq!(back, mlp);
+        assert_eq!(back.negative_slope(), 0.0);
+    }
+
+    #[test]
+    fn a_slope_outside_0_to_1_is_rejected() {
+        let mlp = model();
+        let mut b = mlp.to_bytes();
+        let slope_at = 16 + 4 * mlp.dims().len();
+        b[slope_at..slope_at + 4].copy_from_slice(&1.5f32.to_le_bytes());
+        let body = b.len() - 8;
+        let checksum = fnv1a64(&b[..body]);
+        b[body..].copy_from_slice(&checksum.to_le_bytes());
+        assert!(matches!(Mlp::from_bytes(&b), Err(FormatError::InvalidShape(_))));
     }
 
     #[test]

@@ -19,12 +19,17 @@ const CHUNK_ROWS: usize = 512;
 const DW_CHUNK_ROWS: usize = 4096;
 
 /// A dense network `Linear, ReLU, ..., Linear` (no activation after the last layer).
+///
+/// The hidden activation is ReLU, or leaky ReLU (`x` for `x > 0`, `negative_slope · x` otherwise)
+/// when [`Mlp::set_negative_slope`] gave it a slope.
 #[derive(Clone, PartialEq)]
 pub struct Mlp<T> {
     /// Layer widths `[in, hidden.., out]`.
     pub(super) dims: Vec<usize>,
     /// All weights and biases, layer by layer (`W` row-major `in × out`, then `b`).
     pub(super) params: Vec<T>,
+    /// Slope of the hidden activation for negative inputs (0 = ReLU).
+    pub(super) negative_slope: f32,
 }
 
 impl<T> std::fmt::Debug for Mlp<T> {
@@ -68,7 +73,22 @@ impl<T: Scalar> Mlp<T> {
                 params.push(T::from((2.0 * u - 1.0) * bound).unwrap_or_else(T::zero));
             }
         }
-        Self { dims: dims.to_vec(), params }
+        Self { dims: dims.to_vec(), params, negative_slope: 0.0 }
+    }
+
+    /// Makes the hidden activation a leaky ReLU with this slope for negative inputs (0 = ReLU).
+    /// A leaky unit never stops passing gradient, so no layer can die for every input.
+    ///
+    /// # Panics
+    /// If the slope is not in [0, 1) (a programming error: it comes from validated parameters).
+    pub fn set_negative_slope(&mut self, slope: f32) {
+        assert!((0.0..1.0).contains(&slope), "negative slope must be in [0, 1), got {slope}");
+        self.negative_slope = slope;
+    }
+
+    /// Slope of the hidden activation for negative inputs (0 = ReLU).
+    pub fn negative_slope(&self) -> f32 {
+        self.negative_slope
     }
 
     /// Layer widths `[in, hidden.., out]`.
@@ -131,6 +151,7 @@ impl<T: Scalar> Mlp<T> {
         Mlp {
             dims: self.dims.clone(),
             params: self.params.iter().map(|p| p.to_f64().and_then(U::from).unwrap_or_else(U::nan)).collect(),
+            negative_slope: self.negative_slope,
         }
     }
 
@@ -150,6 +171,7 @@ impl<T: Scalar> Mlp<T> {
         ws.prepare(&self.dims, rows);
         ws.acts[0][..input.len()].copy_from_slice(input);
         let layers = self.layers();
+        let slope = T::from(self.negative_slope).unwrap_or_else(T::zero);
         for l in 0..layers {
             let (n_in, n_out) = (self.dims[l], self.dims[l + 1]);
             let (w, b) = layer_ranges(&self.dims, l);
@@ -162,7 +184,7 @@ impl<T: Scalar> Mlp<T> {
             y.par_chunks_mut(CHUNK_ROWS * n_out).zip(x.par_chunks(CHUNK_ROWS * n_in)).for_each(|(y, x)| {
                 let r = x.len() / n_in;
                 matmul(MatMut::row_major(y, r, n_out), MatRef::row_major(x, r, n_in), w, false, Threads::Single);
-                add_bias(y, b, relu);
+                add_bias(y, b, relu, slope);
             });
         }
         ws.output()
@@ -196,6 +218,7 @@ impl<T: Scalar> Mlp<T> {
             assert_eq!(gi.len(), rows * self.input_dim(), "grad_input must be rows × {}", self.input_dim());
         }
         let layers = self.layers();
+        let slope = T::from(self.negative_slope).unwrap_or_else(T::zero);
         let max_width = self.dims[1..].iter().copied().max().unwrap_or(0);
         let max_weights = self.dims.windows(2).map(|w| w[0] * w[1]).max().unwrap_or(0);
         ensure_len(&mut ws.grad_a, rows * max_width);
@@ -236,7 +259,7 @@ impl<T: Scalar> Mlp<T> {
                             false,
                             Threads::Single,
                         );
-                        relu_mask_column_sums(dx, act, acc);
+                        relu_mask_column_sums(dx, act, acc, slope);
                     });
                 reduce_partials(partials, n_in, &mut grads.values[b_prev]);
                 std::mem::swap(&mut cur, &mut next);
@@ -252,8 +275,9 @@ impl<T: Scalar> Mlp<T> {
     }
 }
 
-/// `y[r, c] += b[c]`, then ReLU when `relu` (NaN passes through, as in PyTorch).
-fn add_bias<T: Scalar>(y: &mut [T], b: &[T], relu: bool) {
+/// `y[r, c] += b[c]`, then (leaky, with `slope`) ReLU when `relu` (NaN passes through, as in
+/// PyTorch).
+fn add_bias<T: Scalar>(y: &mut [T], b: &[T], relu: bool, slope: T) {
     let width = b.len();
     // Two loops rather than a `relu` test per element, and a select rather than a branch on the
     // sign (random signs would mispredict half the time): both loops vectorise.
@@ -262,7 +286,7 @@ fn add_bias<T: Scalar>(y: &mut [T], b: &[T], relu: bool) {
             for row in chunk.chunks_exact_mut(width) {
                 for (v, &bias) in row.iter_mut().zip(b) {
                     let s = *v + bias;
-                    *v = if s < T::zero() { T::zero() } else { s };
+                    *v = if s < T::zero() { slope * s } else { s };
                 }
             }
         } else {
@@ -302,15 +326,16 @@ fn column_sums_add<T: Scalar>(g: &[T], width: usize, partials: &mut [T], sums: &
     reduce_partials(partials, width, sums);
 }
 
-/// Applies the ReLU derivative to the row block `g` in place (zero wherever the stored activation
-/// `act <= 0`, PyTorch's convention at the kink) and writes the column sums of the masked block to
-/// `acc` (`acc.len()` columns), in one pass.
-fn relu_mask_column_sums<T: Scalar>(g: &mut [T], act: &[T], acc: &mut [T]) {
+/// Applies the (leaky) ReLU derivative to the row block `g` in place (`slope`, 0 for ReLU,
+/// wherever the stored activation `act <= 0`, PyTorch's convention at the kink; a leaky
+/// activation has the sign of its input) and writes the column sums of the masked block to `acc`
+/// (`acc.len()` columns), in one pass.
+fn relu_mask_column_sums<T: Scalar>(g: &mut [T], act: &[T], acc: &mut [T], slope: T) {
     let width = acc.len();
     acc.fill(T::zero());
     for (row, arow) in g.chunks_exact_mut(width).zip(act.chunks_exact(width)) {
         for ((v, &a), s) in row.iter_mut().zip(arow).zip(acc.iter_mut()) {
-            let masked = if a > T::zero() { *v } else { T::zero() };
+            let masked = if a > T::zero() { *v } else { slope * *v };
             *v = masked;
             *s = *s + masked;
         }
@@ -415,6 +440,20 @@ impl<T: Scalar> Workspace<T> {
         self.rows
     }
 
+    /// Per hidden layer, how many of its units were positive for at least one row of the last
+    /// forward pass. A unit at zero for every row passes no gradient ("dead" ReLU); a layer with
+    /// no live unit leaves the network a constant function of its input.
+    pub fn live_hidden_units(&self) -> Vec<usize> {
+        let hidden = self.dims.len().saturating_sub(2);
+        (1..=hidden)
+            .map(|l| {
+                let width = self.dims[l];
+                let acts = &self.acts[l][..self.rows * width];
+                (0..width).filter(|&u| acts.iter().skip(u).step_by(width).any(|&a| a > T::zero())).count()
+            })
+            .collect()
+    }
+
     /// Output of the last forward pass, row-major `rows × out` (empty before any forward pass).
     pub fn output(&self) -> &[T] {
         match (self.acts.last(), self.dims.last()) {
@@ -503,7 +542,12 @@ mod tests {
                     z[r * n_out + o] = b[o] + (0..n_in).map(|i| x[r * n_in + i] * w[i * n_out + o]).sum::<f64>();
                 }
             }
-            x = if l + 1 < mlp.layers() { z.iter().map(|&v| v.max(0.0)).collect() } else { z.clone() };
+            let slope = f64::from(mlp.negative_slope);
+            x = if l + 1 < mlp.layers() {
+                z.iter().map(|&v| if v > 0.0 { v } else { slope * v }).collect()
+            } else {
+                z.clone()
+            };
             pre.push(z);
         }
         pre
@@ -557,8 +601,13 @@ mod tests {
     /// components of normal size, and an absolute floor 1e-8·(1 + |L|), 50× above the rounding
     /// error, for components near zero.
     fn check_gradients(dims: &[usize], rows: usize, seed: u64) {
+        check_gradients_with_slope(dims, rows, seed, 0.0);
+    }
+
+    fn check_gradients_with_slope(dims: &[usize], rows: usize, seed: u64, slope: f32) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut mlp = Mlp::<f64>::new(dims, &mut rng);
+        mlp.set_negative_slope(slope);
         let input = random(rows * dims[0], 1.0, &mut rng);
         let c = random(rows * dims[dims.len() - 1], 1.0, &mut rng);
         let margin = kink_margin(&mlp, &input, rows);
@@ -616,6 +665,52 @@ mod tests {
     #[test]
     fn deep_mlp_gradients_match_finite_differences() {
         check_gradients(&[4, 8, 8, 8, 8, 3], 6, 3);
+    }
+
+    #[test]
+    fn leaky_mlp_gradients_match_finite_differences() {
+        check_gradients_with_slope(&[4, 8, 8, 8, 8, 3], 6, 3, 0.1);
+    }
+
+    #[test]
+    fn a_leaky_unit_passes_its_negative_inputs_scaled() {
+        // One hidden unit with weight 1 and bias 0 between a scalar input and output.
+        let mut mlp = Mlp::<f64> { dims: vec![1, 1, 1], params: vec![1.0, 0.0, 1.0, 0.0], negative_slope: 0.0 };
+        let mut ws = Workspace::default();
+        assert_eq!(mlp.forward(&[-2.0, 3.0], 2, &mut ws), &[0.0, 3.0]);
+        mlp.set_negative_slope(0.25);
+        assert_eq!(mlp.forward(&[-2.0, 3.0], 2, &mut ws), &[-0.5, 3.0]);
+        let mut grads = Gradients::zeros_like(&mlp);
+        let mut grad_in = [0.0; 2];
+        mlp.backward(&mut ws, &[1.0, 1.0], &mut grads, Some(&mut grad_in));
+        assert_eq!(grad_in, [0.25, 1.0]);
+    }
+
+    #[test]
+    fn live_hidden_units_counts_units_positive_for_some_row() {
+        let dims = [3, 6, 5, 2];
+        let mut mlp = Mlp::<f32>::new(&dims, &mut ChaCha8Rng::seed_from_u64(5));
+        let input64 = random(40 * 3, 1.0, &mut ChaCha8Rng::seed_from_u64(6));
+        let input: Vec<f32> = input64.iter().map(|&x| x as f32).collect();
+        let mut ws = Workspace::default();
+        mlp.forward(&input, 40, &mut ws);
+        let live = ws.live_hidden_units();
+        assert_eq!(live.len(), 2);
+        // Brute force from the pre-activations: a unit is live when some row's value is > 0.
+        let input_f64: Vec<f64> = input.iter().map(|&x| f64::from(x)).collect();
+        let pre = naive_pre_activations(&mlp.cast::<f64>(), &input_f64, 40);
+        for (l, &count) in live.iter().enumerate() {
+            let width = dims[l + 1];
+            let expected = (0..width).filter(|&u| (0..40).any(|r| pre[l][r * width + u] > 0.0)).count();
+            assert_eq!(count, expected, "layer {l}");
+        }
+        // Zero weights and a negative bias kill every unit of the second hidden layer.
+        let (w, b) = layer_ranges(&dims, 1);
+        let params = mlp.parameters_mut();
+        params[w].iter_mut().for_each(|x| *x = 0.0);
+        params[b].iter_mut().for_each(|x| *x = -1.0);
+        mlp.forward(&input, 40, &mut ws);
+        assert_eq!(ws.live_hidden_units()[1], 0);
     }
 
     #[test]

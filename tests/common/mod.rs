@@ -37,6 +37,7 @@ impl Fitter for SlowFitter {
                 loss: LossTerms { chamfer: 1.0 / iteration as f64, ..LossTerms::default() },
                 best_validation_loss: None,
                 validation_loss: None,
+                fewest_live_units: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });
