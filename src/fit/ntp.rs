@@ -344,11 +344,14 @@ pub fn fit_trajectory(
     let mut best: Option<(f64, usize, Mlp<f32>)> = None;
     let mut references = Vec::with_capacity(t_count.max(params.reference_frames));
     let mut validations_since_best = 0;
+    let mut restarts = 0;
+    // Halves at each collapse restart; multiplies the scheduled learning rate.
+    let mut lr_scale = 1.0f32;
     let mut iterations_run = 0;
     let started = Instant::now();
 
     for iteration in 0..params.iterations {
-        adam.set_lr(step_lr(params.learning_rate, iteration, params.lr_halve_every));
+        adam.set_lr(lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
         let validation = iteration % params.validate_every == 0;
         references.clear();
         if validation {
@@ -390,7 +393,24 @@ pub fn fit_trajectory(
                 total: validation_terms.total / frames,
             };
             let loss = validation_terms.total;
-            if best.as_ref().is_none_or(|(b, _, _)| loss < *b) {
+            let collapsed = scratch.fewest_live_units == Some(0);
+            if collapsed && restarts < params.collapse_restarts {
+                if let Some((_, best_iteration, best_mlp)) = &best {
+                    restarts += 1;
+                    lr_scale *= 0.5;
+                    tracing::info!(
+                        iteration,
+                        best_iteration,
+                        restarts,
+                        lr_scale,
+                        "network collapsed: back to the best checkpoint"
+                    );
+                    mlp = best_mlp.clone();
+                    adam = Adam::new(&mlp, lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
+                    // This iteration's gradients belong to the collapsed weights.
+                    grads.fill_zero();
+                }
+            } else if best.as_ref().is_none_or(|(b, _, _)| loss < *b) {
                 best = Some((loss, iteration, mlp.clone()));
                 validations_since_best = 0;
             } else if !rigidity || iteration >= params.rigidity_warmup_iterations {

@@ -176,6 +176,11 @@ pub struct FitParams {
     /// cycle terms, which are smallest for a field that does not vary, can drive a whole layer to
     /// zero for every input; the network is then constant and no gradient reaches it again.
     pub hidden_negative_slope: Option<f32>,
+    /// **Ours (default 0 = off):** when a validation finds a hidden layer with no live unit on
+    /// frame 0's points (the network has collapsed to one motion for everything, from which no
+    /// gradient recovers it), go back to the best checkpoint with fresh optimiser moments and half
+    /// the learning rate, at most this many times per fit.
+    pub collapse_restarts: Option<usize>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -261,6 +266,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::hidden_negative_slope`] (0 = ReLU).
     #[serde(default)]
     pub hidden_negative_slope: f32,
+    /// See [`FitParams::collapse_restarts`] (0 = off).
+    #[serde(default)]
+    pub collapse_restarts: usize,
 }
 
 fn default_true() -> bool {
@@ -360,6 +368,7 @@ impl FitParams {
                 10.0,
             )?,
             hidden_negative_slope: float_in("hidden_negative_slope", self.hidden_negative_slope, 0.0, 0.0, 0.99)?,
+            collapse_restarts: int_in("collapse_restarts", self.collapse_restarts, 0, 0, 100)?,
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

@@ -385,3 +385,33 @@ fn dbscan_clusters_of_a_street_scene_keep_moving_bodies_apart() {
         "{dynamic_mixed} of {dynamic_clustered} clustered dynamic points share a cluster with another body"
     );
 }
+
+/// Fewest live units of each validation, in order, for a fit that validates every iteration.
+fn live_units_per_validation(params: &FitParams) -> Vec<usize> {
+    let (sequence, _) = two_bodies(3, 100, 4);
+    let p = params.check(Method::Mbnt).unwrap();
+    let mut live = Vec::new();
+    fit_sequence(&sequence, Method::Mbnt, &p, &mut |progress| {
+        live.extend(progress.fewest_live_units);
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    live
+}
+
+#[test]
+fn a_collapsed_network_goes_back_to_its_best_checkpoint_once_per_allowed_restart() {
+    let base = params_of(&small_params(Method::Mbnt, 60));
+    // A rate this large kills a ReLU layer within a few Adam steps on this problem (a scan of
+    // 0.03-1.0: 0.03 never, 0.1 from the eighth iteration on and for good).
+    let params = FitParams { iterations: Some(60), validate_every: Some(1), learning_rate: Some(0.1), ..base };
+    let without = live_units_per_validation(&params);
+    let first_dead = without.iter().position(|&n| n == 0).expect("the rate is meant to kill a layer");
+    assert!(without[first_dead..].iter().all(|&n| n == 0), "a dead layer stays dead: {without:?}");
+
+    let with = live_units_per_validation(&FitParams { collapse_restarts: Some(1), ..params });
+    assert_eq!(with[..=first_dead], without[..=first_dead], "identical until the first collapse");
+    assert!(with[first_dead + 1] > 0, "the next validation sees the restored checkpoint: {with:?}");
+    let revivals = with.windows(2).filter(|w| w[0] == 0 && w[1] > 0).count();
+    assert_eq!(revivals, 1, "one restart allowed: {with:?}");
+}
