@@ -394,22 +394,22 @@ pub fn fit_trajectory(
             };
             let loss = validation_terms.total;
             let collapsed = scratch.fewest_live_units == Some(0);
-            if collapsed && restarts < params.collapse_restarts {
-                if let Some((_, best_iteration, best_mlp)) = &best {
-                    restarts += 1;
-                    lr_scale *= 0.5;
-                    tracing::info!(
-                        iteration,
-                        best_iteration,
-                        restarts,
-                        lr_scale,
-                        "network collapsed: back to the best checkpoint"
-                    );
-                    mlp = best_mlp.clone();
-                    adam = Adam::new(&mlp, lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
-                    // This iteration's gradients belong to the collapsed weights.
-                    grads.fill_zero();
-                }
+            // Without a checkpoint (a network dead from iteration 0) there is nothing to go back to.
+            let restart_from = best.as_ref().filter(|_| collapsed && restarts < params.collapse_restarts);
+            if let Some((_, best_iteration, best_mlp)) = restart_from {
+                restarts += 1;
+                lr_scale *= 0.5;
+                tracing::info!(
+                    iteration,
+                    best_iteration,
+                    restarts,
+                    lr_scale,
+                    "network collapsed: back to the best checkpoint"
+                );
+                mlp = best_mlp.clone();
+                adam = Adam::new(&mlp, lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
+                // This iteration's gradients belong to the collapsed weights.
+                grads.fill_zero();
             } else if best.as_ref().is_none_or(|(b, _, _)| loss < *b) {
                 best = Some((loss, iteration, mlp.clone()));
                 validations_since_best = 0;

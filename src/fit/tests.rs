@@ -415,3 +415,26 @@ fn a_collapsed_network_goes_back_to_its_best_checkpoint_once_per_allowed_restart
     let revivals = with.windows(2).filter(|w| w[0] == 0 && w[1] > 0).count();
     assert_eq!(revivals, 1, "one restart allowed: {with:?}");
 }
+
+#[test]
+fn a_network_dead_from_its_first_validation_still_returns_a_model_with_restarts_allowed() {
+    let base = params_of(&small_params(Method::Mbnt, 3));
+    // Sixteen layers of four units: for some seeds a layer is negative for every input from the
+    // start, so there is no checkpoint to go back to; the fit must still end with a model.
+    let dead_at_start = (0..64).find_map(|seed| {
+        let params = FitParams {
+            seed: Some(seed),
+            iterations: Some(3),
+            validate_every: Some(1),
+            hidden_width: Some(4),
+            hidden_layers: Some(16),
+            zero_output_init: Some(false),
+            collapse_restarts: Some(3),
+            ..base.clone()
+        };
+        let live = live_units_per_validation(&params);
+        (live[0] == 0).then_some(live)
+    });
+    let live = dead_at_start.expect("some seed starts dead");
+    assert_eq!(live.len(), 3, "every iteration validated: {live:?}");
+}
