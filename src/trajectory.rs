@@ -8,7 +8,9 @@ use serde::{Deserialize, Serialize};
 use crate::fit::Method;
 use crate::fit::encoding::encode_points;
 use crate::fit::prepare::FrameReport;
+use crate::fit::tracks::RigidTrack;
 use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
 use crate::nn::{Mlp, Workspace};
 
@@ -117,6 +119,12 @@ pub struct FitReport {
     /// The checked hyper-parameters the fit ran with.
     #[serde(default)]
     pub params: Option<crate::fit::ValidFitParams>,
+    /// Moving clusters found and followed by rigid tracks (`rigid_tracks`), summed over frames.
+    #[serde(default)]
+    pub rigid_tracks: usize,
+    /// Wall time of finding and following them (s), included in `fit_seconds`.
+    #[serde(default)]
+    pub rigid_tracks_seconds: f64,
 }
 
 /// A fitted motion model of one sequence.
@@ -129,7 +137,16 @@ pub struct FittedModel {
     /// Per frame, sensor coordinates -> the fit's frame (frame 0's sensor coordinates with the
     /// ego motion removed), when the fit used poses. None: the fit worked in sensor coordinates.
     frame_poses: Option<Vec<Rigid>>,
+    /// Rigid tracks of moving clusters (`rigid_tracks`); a query point on one follows it
+    /// instead of the network. Empty when the option is off or nothing moved.
+    tracks: Vec<RigidTrack>,
 }
+
+/// A query point within this distance (m) of a tracked cluster's points, at the query's time,
+/// follows the cluster's track: half the DBSCAN radius, so points of the cluster's own sweep
+/// (distance 0) and of its surface between sweeps qualify, and the static neighbours a metre
+/// away do not.
+const TRACK_MEMBER_RADIUS_M: f32 = 0.4;
 
 /// Query points are evaluated in chunks of this many, bounding memory for large queries.
 const QUERY_CHUNK: usize = 16_384;
@@ -143,7 +160,7 @@ impl FittedModel {
         mlp: Mlp<f32>,
         frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
-        Self { method, time_axis, report, motion: Motion::Trajectory(mlp), frame_poses }
+        Self { method, time_axis, report, motion: Motion::Trajectory(mlp), frame_poses, tracks: Vec::new() }
     }
 
     /// A model from fitted pair flows.
@@ -155,7 +172,14 @@ impl FittedModel {
         backward: Vec<Mlp<f32>>,
         frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
-        Self { method, time_axis, report, motion: Motion::PairFlows { forward, backward }, frame_poses }
+        Self {
+            method,
+            time_axis,
+            report,
+            motion: Motion::PairFlows { forward, backward },
+            frame_poses,
+            tracks: Vec::new(),
+        }
     }
 
     /// The method that produced the model.
@@ -171,6 +195,31 @@ impl FittedModel {
     /// What the fit did (pre-processing counts, iterations, checkpoint).
     pub fn report(&self) -> &FitReport {
         &self.report
+    }
+
+    /// The model with rigid tracks of moving clusters (fit coordinates) answering for their
+    /// points; tracks whose motions do not cover every frame are dropped.
+    pub(crate) fn with_tracks(mut self, tracks: Vec<RigidTrack>) -> Self {
+        let frames = self.time_axis.frames();
+        self.tracks = tracks.into_iter().filter(|t| t.motions.len() == frames && t.frame < frames).collect();
+        self.report.rigid_tracks = self.tracks.len();
+        self
+    }
+
+    /// Sets the reported fit time (s), once post-fit work has been added to it.
+    pub(crate) fn set_fit_seconds(&mut self, seconds: f64, rigid_tracks_seconds: f64) {
+        self.report.fit_seconds = seconds;
+        self.report.rigid_tracks_seconds = rigid_tracks_seconds;
+    }
+
+    /// The same model answering from the network alone (for comparisons).
+    pub fn without_tracks(&self) -> Self {
+        Self { tracks: Vec::new(), ..self.clone() }
+    }
+
+    /// Rigid tracks of moving clusters the model holds.
+    pub fn tracks(&self) -> &[RigidTrack] {
+        &self.tracks
     }
 
     /// Positions of `points`, observed at time `t_obs`, at each of `times`.
@@ -208,6 +257,7 @@ impl FittedModel {
                 }
             }
         }
+        self.apply_tracks(points, u_obs, &u_times, &mut out);
         if let Some(poses) = &self.frame_poses {
             let to_sensor: Vec<Rigid> = u_times.iter().map(|&u| pose_at(poses, u).inverse()).collect();
             for row in out.chunks_mut(times.len()) {
@@ -217,6 +267,43 @@ impl FittedModel {
             }
         }
         Ok(out)
+    }
+
+    /// Overwrites the answers (fit coordinates) of query points that lie on a tracked cluster
+    /// at `u_obs` with the cluster's rigid motion from `u_obs` to each queried time.
+    fn apply_tracks(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+        // Tracks of the frames around u_obs, their points moved to u_obs.
+        let near: Vec<&RigidTrack> = self.tracks.iter().filter(|t| (t.frame as f64 - u_obs).abs() < 1.0).collect();
+        if near.is_empty() {
+            return;
+        }
+        let mut members = Vec::new();
+        let mut owner = Vec::new();
+        let mut to_obs_inverse = Vec::with_capacity(near.len());
+        for (n, track) in near.iter().enumerate() {
+            let at_obs = pose_at(&track.motions, u_obs);
+            members.extend(track.points.iter().map(|p| at_obs.apply(p)));
+            owner.extend(std::iter::repeat_n(n, track.points.len()));
+            to_obs_inverse.push(at_obs.inverse());
+        }
+        let tree = KdTree::new(&members);
+        // Motion of each nearby track from u_obs to each queried time.
+        let motions: Vec<Vec<Rigid>> = near
+            .iter()
+            .zip(&to_obs_inverse)
+            .map(|(track, back)| u_times.iter().map(|&u| pose_at(&track.motions, u).compose(back)).collect())
+            .collect();
+        let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
+        for (i, p) in points.iter().enumerate() {
+            let Some(hit) = tree.nearest(p) else { continue };
+            if hit.dist2 > max_d2 {
+                continue;
+            }
+            let motion = &motions[owner[hit.index]];
+            for (j, m) in motion.iter().enumerate() {
+                out[i * u_times.len() + j] = m.apply(p);
+            }
+        }
     }
 
     /// Scene flow of every frame's points to the next frame: entry k has one vector (m) per
@@ -247,6 +334,7 @@ impl FittedModel {
             kind: kind.to_string(),
             networks: networks.len(),
             frame_poses: self.frame_poses.clone(),
+            tracks: self.tracks.clone(),
         };
         let header = serde_json::to_vec(&header).expect("a header always serialises");
         let mut out = MODEL_MAGIC.to_vec();
@@ -299,12 +387,16 @@ impl FittedModel {
         if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
             return Err("model header: one pose per frame expected".into());
         }
+        if header.tracks.iter().any(|t| t.motions.len() != frames || t.frame >= frames) {
+            return Err("model header: a rigid track does not cover the sequence's frames".into());
+        }
         Ok(Self {
             method: header.method,
             time_axis: header.time_axis,
             report: header.report,
             motion,
             frame_poses: header.frame_poses,
+            tracks: header.tracks,
         })
     }
 }
@@ -320,6 +412,9 @@ struct Header {
     /// Absent in models fitted without poses.
     #[serde(default)]
     frame_poses: Option<Vec<Rigid>>,
+    /// Absent in models fitted without `rigid_tracks`.
+    #[serde(default)]
+    tracks: Vec<RigidTrack>,
 }
 
 /// Trajectory position at fractional frame index `u` from one point's velocity row: the

@@ -492,7 +492,9 @@ fn flows_from(sim: &Labelled, next_position: impl Fn(usize, &Point) -> Point) ->
         .collect()
 }
 
-fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<Prediction> {
+/// Fits `method` and predicts with the model; with rigid tracks also the same fit's network
+/// alone (the second prediction), so both come from one fit.
+fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<(Prediction, Option<Prediction>)> {
     let params = params.check(method)?;
     let sequence =
         Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: sim.poses.clone() };
@@ -523,17 +525,31 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
         }
         ControlFlow::Continue(())
     })?;
-    let flows = model.scene_flow(&sequence.frames);
-    let ts = &sim.timestamps_s;
-    let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
-    let report = model.report();
-    Ok(Prediction {
-        flows,
-        end_positions,
-        fit_seconds: report.fit_seconds,
-        iterations: report.iterations,
-        best_iteration: report.best_iteration,
-    })
+    let predict = |model: &crate::trajectory::FittedModel| -> anyhow::Result<Prediction> {
+        let flows = model.scene_flow(&sequence.frames);
+        let ts = &sim.timestamps_s;
+        let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
+        let report = model.report();
+        Ok(Prediction {
+            flows,
+            end_positions,
+            fit_seconds: report.fit_seconds,
+            iterations: report.iterations,
+            best_iteration: report.best_iteration,
+        })
+    };
+    let network_alone = if params.rigid_tracks {
+        eprintln!(
+            "  {}: {} rigid tracks of moving clusters ({:.1} s)",
+            method.name(),
+            model.tracks().len(),
+            model.report().rigid_tracks_seconds
+        );
+        Some(predict(&model.without_tracks())?)
+    } else {
+        None
+    };
+    Ok((predict(&model)?, network_alone))
 }
 
 /// Runs `mbnt eval` and prints a table (and JSON when asked).
@@ -566,7 +582,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         let methods: &[Method] = if args.baselines_only { &[] } else { &args.methods };
         for &method in methods {
             eprintln!("{}: fitting {}", seq.name, method.name());
-            let pred = run_method(seq, method, &params)?;
+            let (pred, network_alone) = run_method(seq, method, &params)?;
+            if let Some(alone) = network_alone {
+                let name = format!("{} (same fit, without tracks)", method.name());
+                results.push(score(&name, seq, &evaluated, &alone, still));
+            }
             let result = score(method.name(), seq, &evaluated, &pred, still);
             eprintln!(
                 "  {}: long-term EPE {:.3} m, Acc.5 {:.1} %, scene-flow EPE {:.3} m, fit {:.0} s",

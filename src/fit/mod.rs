@@ -10,12 +10,14 @@ pub mod ntp;
 mod params;
 pub mod prepare;
 mod rigidity;
+pub mod tracks;
 
 pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};
 
 use std::ops::ControlFlow;
 
 use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
 use crate::trajectory::{FitReport, FittedModel, TimeAxis};
 
@@ -130,8 +132,9 @@ pub fn fit_sequence(
         (Some(poses), true) => Some(poses_relative_to_first(poses)?),
         _ => None,
     };
+    let with_clusters = method.uses_rigidity() || params.rigid_tracks;
     let (frames, frame_reports) =
-        prepare::prepare_frames(sequence, params, method.uses_rigidity(), true, frame_poses.as_deref())?;
+        prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
     let model = if method.is_trajectory() {
         let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;
@@ -148,6 +151,16 @@ pub fn fit_sequence(
         report.fit_seconds = started.elapsed().as_secs_f64();
         FittedModel::pair_flows(method, sequence.time_axis(), report, fit.forward, fit.backward, frame_poses)
     };
+    if !params.rigid_tracks {
+        return Ok(model);
+    }
+    let tracking = std::time::Instant::now();
+    let points: Vec<&[Point]> = frames.iter().map(|f| f.full.points.as_slice()).collect();
+    let trees: Vec<&KdTree> = frames.iter().map(|f| &f.full.tree).collect();
+    let clusters: Vec<&[Vec<u32>]> = frames.iter().map(|f| f.full.clusters.as_slice()).collect();
+    let tracks = tracks::track_moving_clusters(&points, &trees, &clusters, &tracks::TrackParams::default());
+    let mut model = model.with_tracks(tracks);
+    model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)
 }
 

@@ -181,6 +181,11 @@ pub struct FitParams {
     /// gradient recovers it), go back to the best checkpoint with fresh optimiser moments and half
     /// the learning rate, at most this many times per fit.
     pub collapse_restarts: Option<usize>,
+    /// **Ours (default false):** after the fit, find the clusters that one rigid motion to the
+    /// next frame explains clearly better than standing still, follow each by ICP through the
+    /// sequence, and answer queries on their points from these rigid tracks instead of the
+    /// network (`fit::tracks`). Any method; clusters are computed for it when the method has none.
+    pub rigid_tracks: Option<bool>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
 }
@@ -269,6 +274,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::collapse_restarts`] (0 = off).
     #[serde(default)]
     pub collapse_restarts: usize,
+    /// See [`FitParams::rigid_tracks`].
+    #[serde(default)]
+    pub rigid_tracks: bool,
 }
 
 fn default_true() -> bool {
@@ -369,6 +377,7 @@ impl FitParams {
             )?,
             hidden_negative_slope: float_in("hidden_negative_slope", self.hidden_negative_slope, 0.0, 0.0, 0.99)?,
             collapse_restarts: int_in("collapse_restarts", self.collapse_restarts, 0, 0, 100)?,
+            rigid_tracks: self.rigid_tracks.unwrap_or(false),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }

@@ -438,3 +438,32 @@ fn a_network_dead_from_its_first_validation_still_returns_a_model_with_restarts_
     let live = dead_at_start.expect("some seed starts dead");
     assert_eq!(live.len(), 3, "every iteration validated: {live:?}");
 }
+
+#[test]
+fn rigid_tracks_carry_a_moving_body_the_network_has_not_learnt_and_survive_serialisation() {
+    // Three iterations teach the network nothing; the tracks alone must carry body A (a 4 m box
+    // driving 0.5 m per frame, sampled about as densely as a car near the sensor) 2.5 m on.
+    let frames = 6;
+    let (sequence, truth) = two_bodies(frames, 1500, 3);
+    let params =
+        FitParams { rigid_tracks: Some(true), iterations: Some(3), ..params_of(&small_params(Method::Mbnt, 3)) };
+    let p = params.check(Method::Mbnt).unwrap();
+    let model = fit_sequence(&sequence, Method::Mbnt, &p, &mut |_| ControlFlow::Continue(())).unwrap();
+    assert!(model.report().rigid_tracks > 0 && model.report().rigid_tracks == model.tracks().len());
+    let last = (frames - 1) as f64;
+    let body_a = &sequence.frames[0][..1500];
+    let error = |m: &crate::trajectory::FittedModel| -> f64 {
+        let at = m.positions(body_a, 0.0, &[last]).unwrap();
+        at.iter().zip(&truth[..1500]).map(|(p, q)| crate::geometry::knn::dist2(p, q).sqrt() as f64).sum::<f64>()
+            / 1500.0
+    };
+    let (tracked, alone) = (error(&model), error(&model.without_tracks()));
+    // Resampled surfaces register to about their sample spacing (~0.1 m here); 0.2 m leaves room.
+    assert!(tracked < 0.2 && tracked < alone / 3.0, "with tracks {tracked:.3} m, network alone {alone:.3} m");
+
+    let bytes = model.to_bytes();
+    let back = crate::trajectory::FittedModel::from_bytes(&bytes).unwrap();
+    assert_eq!(back.tracks(), model.tracks());
+    assert!(back.to_bytes() == bytes);
+    assert_eq!(model.positions(body_a, 0.5, &[0.0, 3.2]).unwrap(), back.positions(body_a, 0.5, &[0.0, 3.2]).unwrap());
+}
