@@ -579,6 +579,38 @@ mod tests {
     }
 
     #[test]
+    fn points_on_a_rigid_track_follow_it_at_any_time_and_the_others_the_network() {
+        use rand::SeedableRng;
+        let frames = 4;
+        let mut mlp = Mlp::<f32>::new(
+            &[crate::fit::encoding::input_width(frames), 8, 3 * (frames - 1)],
+            &mut rand_chacha::ChaCha8Rng::seed_from_u64(1),
+        );
+        mlp.zero_output_layer(); // the network: nothing moves
+        let axis = TimeAxis::new(None, frames);
+        let model = FittedModel::trajectory(Method::Mbnt, axis, FitReport::default(), mlp, None);
+        // A track found in frame 1: the body drives 1 m per frame along x.
+        let shift = |j: usize| Rigid { translation: [j as f64 - 1.0, 0.0, 0.0], ..Rigid::identity() };
+        let body: Vec<Point> = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let track = RigidTrack { frame: 1, points: body.clone(), motions: (0..frames).map(shift).collect() };
+        let short = RigidTrack { frame: 1, points: body.clone(), motions: vec![Rigid::identity(); 2] };
+        let model = model.with_tracks(vec![track, short]);
+        assert_eq!(model.tracks().len(), 1, "a track that does not cover every frame is dropped");
+        assert_eq!(model.report().rigid_tracks, 1);
+        // Observed at time 1.5 the body has moved half a metre on from frame 1; a point 5 m away
+        // is static.
+        let queries = [[0.5, 0.1, 0.0], [5.5, 5.0, 0.0]];
+        let at = model.positions(&queries, 1.5, &[0.0, 1.5, 3.0]).unwrap();
+        let expected =
+            [[-1.0, 0.1, 0.0], [0.5, 0.1, 0.0], [2.0, 0.1, 0.0], [5.5, 5.0, 0.0], [5.5, 5.0, 0.0], [5.5, 5.0, 0.0]];
+        for (got, want) in at.iter().zip(&expected) {
+            assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5), "{at:?}");
+        }
+        let alone = model.without_tracks().positions(&queries, 1.5, &[3.0]).unwrap();
+        assert_eq!(alone[0], queries[0], "without tracks the network answers");
+    }
+
+    #[test]
     fn timestamps_map_piecewise_linearly_to_frame_indices() {
         let axis = TimeAxis::new(Some(vec![10.0, 10.1, 10.3]), 3);
         assert!((axis.to_frame_index(10.05).unwrap() - 0.5).abs() < 1e-9);
