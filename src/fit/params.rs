@@ -181,10 +181,12 @@ pub struct FitParams {
     /// gradient recovers it), go back to the best checkpoint with fresh optimiser moments and half
     /// the learning rate, at most this many times per fit.
     pub collapse_restarts: Option<usize>,
-    /// **Ours (default false):** after the fit, find the clusters that one rigid motion to the
-    /// next frame explains clearly better than standing still, follow each by ICP through the
-    /// sequence, and answer queries on their points from these rigid tracks instead of the
-    /// network (`fit::tracks`). Any method; clusters are computed for it when the method has none.
+    /// **Ours (default true for MBNT in fast mode, false otherwise):** after the fit, find the
+    /// clusters that one rigid motion to the next frame explains clearly better than standing
+    /// still, follow each by ICP through the sequence, and answer queries on their points from
+    /// these rigid tracks instead of the network (`fit::tracks`): the multi-body term holds moving
+    /// bodies still (docs/benchmarks.md, section 7). Any method may ask for it; clusters are
+    /// computed for it when the method has none.
     pub rigid_tracks: Option<bool>,
     /// Drop points farther than this from the sensor, m (default 80).
     pub max_range_m: Option<f32>,
@@ -377,7 +379,7 @@ impl FitParams {
             )?,
             hidden_negative_slope: float_in("hidden_negative_slope", self.hidden_negative_slope, 0.0, 0.0, 0.99)?,
             collapse_restarts: int_in("collapse_restarts", self.collapse_restarts, 0, 0, 100)?,
-            rigid_tracks: self.rigid_tracks.unwrap_or(false),
+            rigid_tracks: self.rigid_tracks.unwrap_or(fast && method == Method::Mbnt),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }
@@ -398,6 +400,9 @@ mod tests {
         assert_eq!(p.cycle_sample_points, 0);
         assert_eq!(p.d_thr_motion_fraction, 0.0);
         assert!(!p.zero_output_init);
+        assert!(!p.rigid_tracks);
+        assert!(FitParams::default().check(Method::Mbnt).unwrap().rigid_tracks);
+        assert!(!FitParams::default().check(Method::Ntp).unwrap().rigid_tracks);
         assert!(FitParams::default().check(Method::Mbnt).unwrap().zero_output_init);
         assert!(!FitParams::default().check(Method::Ntp).unwrap().zero_output_init);
         assert_eq!(p.learning_rate, 0.003);
