@@ -201,7 +201,7 @@ impl FittedModel {
     /// points; tracks whose motions do not cover every frame are dropped.
     pub(crate) fn with_tracks(mut self, tracks: Vec<RigidTrack>) -> Self {
         let frames = self.time_axis.frames();
-        self.tracks = tracks.into_iter().filter(|t| t.motions.len() == frames && t.frame < frames).collect();
+        self.tracks = tracks.into_iter().filter(|t| t.fits(frames)).collect();
         self.report.rigid_tracks = self.tracks.len();
         self
     }
@@ -279,20 +279,16 @@ impl FittedModel {
         }
         let mut members = Vec::new();
         let mut owner = Vec::new();
-        let mut to_obs_inverse = Vec::with_capacity(near.len());
+        // Per nearby track, its motion from u_obs to each queried time.
+        let mut motions: Vec<Vec<Rigid>> = Vec::with_capacity(near.len());
         for (n, track) in near.iter().enumerate() {
             let at_obs = pose_at(&track.motions, u_obs);
             members.extend(track.points.iter().map(|p| at_obs.apply(p)));
             owner.extend(std::iter::repeat_n(n, track.points.len()));
-            to_obs_inverse.push(at_obs.inverse());
+            let back = at_obs.inverse();
+            motions.push(u_times.iter().map(|&u| pose_at(&track.motions, u).compose(&back)).collect());
         }
         let tree = KdTree::new(&members);
-        // Motion of each nearby track from u_obs to each queried time.
-        let motions: Vec<Vec<Rigid>> = near
-            .iter()
-            .zip(&to_obs_inverse)
-            .map(|(track, back)| u_times.iter().map(|&u| pose_at(&track.motions, u).compose(back)).collect())
-            .collect();
         let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
         for (i, p) in points.iter().enumerate() {
             let Some(hit) = tree.nearest(p) else { continue };
@@ -387,7 +383,7 @@ impl FittedModel {
         if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
             return Err("model header: one pose per frame expected".into());
         }
-        if header.tracks.iter().any(|t| t.motions.len() != frames || t.frame >= frames) {
+        if header.tracks.iter().any(|t| !t.fits(frames)) {
             return Err("model header: a rigid track does not cover the sequence's frames".into());
         }
         Ok(Self {

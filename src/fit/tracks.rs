@@ -68,16 +68,31 @@ pub struct RigidTrack {
     pub motions: Vec<Rigid>,
 }
 
+impl RigidTrack {
+    /// Whether the track belongs to a sequence of `frames` frames: found in one of them, with a
+    /// motion to each.
+    pub fn fits(&self, frames: usize) -> bool {
+        self.frame < frames && self.motions.len() == frames
+    }
+}
+
+/// Buffers of [`mean_distance_m`], reused across the many calls of one cluster's search.
+#[derive(Default)]
+struct DistanceScratch {
+    moved: Vec<Point>,
+    hits: Vec<Nearest>,
+}
+
 /// Mean distance (m) from `src` moved by `motion` to the nearest point of `tree`, each distance
 /// capped at `cap_m` so that a few stray points do not dominate.
-fn mean_distance_m(src: &[Point], motion: &Rigid, tree: &KdTree, cap_m: f32, scratch: &mut Vec<Point>) -> f64 {
-    scratch.clear();
-    scratch.extend(src.iter().map(|p| motion.apply(p)));
-    let mut hits = vec![Nearest { index: 0, dist2: 0.0 }; scratch.len()];
-    if src.is_empty() || !tree.nearest_batch(scratch, &mut hits) {
+fn mean_distance_m(src: &[Point], motion: &Rigid, tree: &KdTree, cap_m: f32, scratch: &mut DistanceScratch) -> f64 {
+    scratch.moved.clear();
+    scratch.moved.extend(src.iter().map(|p| motion.apply(p)));
+    scratch.hits.resize(src.len(), Nearest { index: 0, dist2: 0.0 });
+    if src.is_empty() || !tree.nearest_batch(&scratch.moved, &mut scratch.hits) {
         return f64::from(cap_m);
     }
-    hits.iter().map(|h| f64::from(h.dist2.sqrt().min(cap_m))).sum::<f64>() / src.len() as f64
+    scratch.hits.iter().map(|h| f64::from(h.dist2.sqrt().min(cap_m))).sum::<f64>() / src.len() as f64
 }
 
 /// Length of a motion's translation (m).
@@ -88,8 +103,13 @@ fn shift_m(m: &Rigid) -> f64 {
 /// The best first step of `src` onto `target`: ICP from every start of a translation grid, the
 /// lowest mean distance winning (the smaller motion on a tie within 1 mm). Returns the motion
 /// and its mean distance.
-fn search_first_step(src: &[Point], tree: &KdTree, target: &[Point], params: &TrackParams) -> (Rigid, f64) {
-    let mut scratch = Vec::new();
+fn search_first_step(
+    src: &[Point],
+    tree: &KdTree,
+    target: &[Point],
+    params: &TrackParams,
+    scratch: &mut DistanceScratch,
+) -> (Rigid, f64) {
     let half = (params.search_half_width_m / params.search_step_m).round() as i32;
     let mut best = (Rigid::identity(), f64::INFINITY);
     for ix in -half..=half {
@@ -97,7 +117,7 @@ fn search_first_step(src: &[Point], tree: &KdTree, target: &[Point], params: &Tr
             let mut start = Rigid::identity();
             start.translation = [f64::from(ix) * params.search_step_m, f64::from(iy) * params.search_step_m, 0.0];
             let motion = fit_rigid_icp(src, tree, target, start, 8, params.max_corr_dist_m);
-            let distance = mean_distance_m(src, &motion, tree, params.max_corr_dist_m, &mut scratch);
+            let distance = mean_distance_m(src, &motion, tree, params.max_corr_dist_m, scratch);
             let better = distance < best.1 - 1e-3 || (distance < best.1 + 1e-3 && shift_m(&motion) < shift_m(&best.0));
             if better {
                 best = (motion, distance.min(best.1));
@@ -148,12 +168,12 @@ fn track_cluster(
     let src: Vec<Point> = cluster.iter().step_by(stride).map(|&i| frames[k][i as usize]).collect();
     // The test step goes to the next frame (the previous one for the last frame).
     let probe = if k + 1 < t { k + 1 } else { k - 1 };
-    let mut scratch = Vec::new();
+    let mut scratch = DistanceScratch::default();
     let still = mean_distance_m(&src, &Rigid::identity(), trees[probe], params.max_corr_dist_m, &mut scratch);
     if still < params.min_gain_m {
         return None; // no motion can gain enough
     }
-    let (first, moved) = search_first_step(&src, trees[probe], frames[probe], params);
+    let (first, moved) = search_first_step(&src, trees[probe], frames[probe], params, &mut scratch);
     if still - moved < params.min_gain_m || moved > params.max_residual_share * still {
         return None;
     }
@@ -166,10 +186,8 @@ fn track_cluster(
         let mut current = Rigid::identity();
         for (n, j) in steps.into_iter().enumerate() {
             let guess = if n == 0 {
-                match (forward, probe > k) {
-                    (true, true) | (false, false) => first,
-                    _ => first.inverse(),
-                }
+                // The test step, reversed when this chain runs the other way.
+                if forward == (probe > k) { first } else { first.inverse() }
             } else {
                 current.compose(&previous.inverse()).compose(&current)
             };
