@@ -110,10 +110,21 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
             last_print = now;
             let elapsed = started.elapsed().as_secs_f64();
             let eta = elapsed / p.iteration as f64 * (p.iterations - p.iteration) as f64;
-            let line = format!(
-                "iteration {}/{}  loss {:.5} (chamfer {:.5}, cycle {:.5}, rigidity {:.5})  {:.0}s, eta {:.0}s",
-                p.iteration, p.iterations, p.loss.total, p.loss.chamfer, p.loss.cycle, p.loss.rigidity, elapsed, eta
-            );
+            let line = if let Some(t) = p.rigid_tracks {
+                format!("rigid tracks: {}/{} clusters tested  {elapsed:.0}s", t.clusters_done, t.clusters)
+            } else {
+                format!(
+                    "iteration {}/{}  loss {:.5} (chamfer {:.5}, cycle {:.5}, rigidity {:.5})  {:.0}s, eta {:.0}s",
+                    p.iteration,
+                    p.iterations,
+                    p.loss.total,
+                    p.loss.chamfer,
+                    p.loss.cycle,
+                    p.loss.rigidity,
+                    elapsed,
+                    eta
+                )
+            };
             if interactive {
                 eprint!("\r{line}   ");
             } else {

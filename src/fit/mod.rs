@@ -91,6 +91,19 @@ pub struct Progress {
     /// (units positive for at least one of frame 0's validation points). 0 means the network has
     /// collapsed to a constant function, which no further step can undo.
     pub fewest_live_units: Option<usize>,
+    /// Set once the network is fitted and the rigid tracks (`rigid_tracks`) are being built; the
+    /// iteration, loss and best-validation fields then repeat the last iteration's, and the
+    /// validation-only fields (`validation_loss`, `fewest_live_units`) are `None`.
+    pub rigid_tracks: Option<TrackingProgress>,
+}
+
+/// How far the search for rigid tracks has come.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct TrackingProgress {
+    /// Clusters tested so far.
+    pub clusters_done: usize,
+    /// Clusters to test (every DBSCAN cluster of every frame).
+    pub clusters: usize,
 }
 
 /// Why a fit did not produce a model.
@@ -136,8 +149,14 @@ pub fn fit_sequence(
     let (frames, frame_reports) =
         prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
+    // The last iteration's progress, repeated while the rigid tracks are built.
+    let mut last = None::<Progress>;
+    let mut on_iteration = |p: &Progress| {
+        last = Some(p.clone());
+        on_progress(p)
+    };
     let model = if method.is_trajectory() {
-        let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), on_progress)?;
+        let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), &mut on_iteration)?;
         report.iterations = fit.iterations;
         report.best_iteration = Some(fit.best_iteration);
         report.best_validation_loss = Some(fit.best_validation_loss);
@@ -145,7 +164,7 @@ pub fn fit_sequence(
         report.fit_seconds = started.elapsed().as_secs_f64();
         FittedModel::trajectory(method, sequence.time_axis(), report, fit.mlp, frame_poses)
     } else {
-        let fit = nsfp::fit_pairs(&frames, params, method.uses_rigidity(), on_progress)?;
+        let fit = nsfp::fit_pairs(&frames, params, method.uses_rigidity(), &mut on_iteration)?;
         report.iterations = fit.iterations_per_pair.iter().sum();
         report.iterations_per_pair = fit.iterations_per_pair;
         report.fit_seconds = started.elapsed().as_secs_f64();
@@ -158,7 +177,30 @@ pub fn fit_sequence(
     let points: Vec<&[Point]> = frames.iter().map(|f| f.full.points.as_slice()).collect();
     let trees: Vec<&KdTree> = frames.iter().map(|f| &f.full.tree).collect();
     let clusters: Vec<&[Vec<u32>]> = frames.iter().map(|f| f.full.clusters.as_slice()).collect();
-    let tracks = tracks::track_moving_clusters(&points, &trees, &clusters, &tracks::TrackParams::default());
+    let mut last = last.unwrap_or(Progress {
+        iteration: 0,
+        iterations: params.iterations,
+        loss: LossTerms::default(),
+        best_validation_loss: None,
+        validation_loss: None,
+        fewest_live_units: None,
+        rigid_tracks: None,
+    });
+    // A validation happened once, at its iteration: not again on every tracking step.
+    last.validation_loss = None;
+    last.fewest_live_units = None;
+    let iteration = last.iteration;
+    let tracks = tracks::track_moving_clusters(
+        &points,
+        &trees,
+        &clusters,
+        &tracks::TrackParams::default(),
+        &mut |clusters_done, clusters| {
+            last.rigid_tracks = Some(TrackingProgress { clusters_done, clusters });
+            on_progress(&last)
+        },
+    )
+    .ok_or(FitError::Cancelled { iteration })?;
     let mut model = model.with_tracks(tracks);
     model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)

@@ -192,6 +192,7 @@ pub fn fit_pairs(
                 best_validation_loss: Some(best.0),
                 validation_loss: None,
                 fewest_live_units: None,
+                rigid_tracks: None,
             };
             if on_progress(&progress).is_break() {
                 return Err(FitError::Cancelled { iteration: done });

@@ -467,3 +467,33 @@ fn rigid_tracks_carry_a_moving_body_the_network_has_not_learnt_and_survive_seria
     assert!(back.to_bytes() == bytes);
     assert_eq!(model.positions(body_a, 0.5, &[0.0, 3.2]).unwrap(), back.positions(body_a, 0.5, &[0.0, 3.2]).unwrap());
 }
+
+#[test]
+fn building_the_rigid_tracks_reports_progress_and_can_be_cancelled() {
+    let frames = 6;
+    let (sequence, _) = two_bodies(frames, 1500, 3);
+    let params =
+        FitParams { rigid_tracks: Some(true), iterations: Some(3), ..params_of(&small_params(Method::Mbnt, 3)) };
+    let p = params.check(Method::Mbnt).unwrap();
+    let mut tracking = Vec::new();
+    fit_sequence(&sequence, Method::Mbnt, &p, &mut |progress| {
+        if let Some(t) = progress.rigid_tracks {
+            // The iteration fields keep the last iteration's values meanwhile.
+            assert_eq!(progress.iteration, 3);
+            // ...but no validation is reported again.
+            assert!(progress.validation_loss.is_none() && progress.fewest_live_units.is_none());
+            tracking.push(t);
+        }
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    let last = tracking.last().expect("tracking reported progress");
+    assert!(last.clusters > 0 && last.clusters_done == last.clusters);
+    assert!(tracking.windows(2).all(|w| w[0].clusters_done < w[1].clusters_done));
+
+    // A cancel while the tracks are built ends the fit like a cancel between iterations.
+    let result = fit_sequence(&sequence, Method::Mbnt, &p, &mut |progress| {
+        if progress.rigid_tracks.is_some() { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+    });
+    assert!(matches!(result, Err(FitError::Cancelled { iteration: 3 })), "{result:?}");
+}

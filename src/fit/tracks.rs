@@ -14,7 +14,10 @@
 //! drop by at least [`TrackParams::min_gain_m`] and to at most half. Static clusters stay with the
 //! network; a moving body the test misses loses nothing against the network alone.
 //!
-//! Pure computation on prepared frames (fit coordinates): no I/O, parallel over frames on rayon.
+//! Pure computation on prepared frames (fit coordinates): no I/O, parallel over clusters on
+//! rayon, with a progress callback that can stop it.
+
+use std::ops::ControlFlow;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -127,29 +130,42 @@ fn search_first_step(
     best
 }
 
+/// Clusters the tracker tests between two calls of its progress callback: small enough that a
+/// cancel takes effect within about a second, large enough to keep both cores busy.
+const CLUSTERS_PER_STEP: usize = 16;
+
 /// Tracks of the moving clusters of every frame. `frames[k]` are frame k's points in fit
 /// coordinates with `trees[k]` built over them, and `clusters[k]` its DBSCAN clusters (indices
 /// into `frames[k]`). Deterministic: no randomness, and the result does not depend on the thread
 /// count.
+///
+/// `on_step(done, total)` is called from the calling thread after every
+/// [`CLUSTERS_PER_STEP`] clusters tested (and once at the end) with the clusters tested so far;
+/// returning `ControlFlow::Break` stops the search, and the function returns `None`.
 pub fn track_moving_clusters(
     frames: &[&[Point]],
     trees: &[&KdTree],
     clusters: &[&[Vec<u32>]],
     params: &TrackParams,
-) -> Vec<RigidTrack> {
+    on_step: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+) -> Option<Vec<RigidTrack>> {
     let t = frames.len();
     if t < 2 {
-        return Vec::new();
+        return Some(Vec::new());
     }
-    (0..t)
-        .into_par_iter()
-        .flat_map_iter(|k| {
-            clusters[k]
-                .iter()
-                .filter_map(|cluster| track_cluster(k, cluster, frames, trees, params))
-                .collect::<Vec<_>>()
-        })
-        .collect()
+    // Every (frame, cluster) pair in frame order: the order of the result.
+    let work: Vec<(usize, &[u32])> = (0..t).flat_map(|k| clusters[k].iter().map(move |c| (k, c.as_slice()))).collect();
+    let mut tracks = Vec::new();
+    for (step, chunk) in work.chunks(CLUSTERS_PER_STEP).enumerate() {
+        let found: Vec<RigidTrack> =
+            chunk.par_iter().filter_map(|&(k, cluster)| track_cluster(k, cluster, frames, trees, params)).collect();
+        tracks.extend(found);
+        let done = (step * CLUSTERS_PER_STEP + chunk.len()).min(work.len());
+        if on_step(done, work.len()).is_break() {
+            return None;
+        }
+    }
+    Some(tracks)
 }
 
 /// The track of one cluster of frame `k`, or `None` when it is not clearly moving.
@@ -234,7 +250,8 @@ mod tests {
             let frames: Vec<&[Point]> = self.frames.iter().map(Vec::as_slice).collect();
             let trees: Vec<&KdTree> = trees.iter().collect();
             let clusters: Vec<&[Vec<u32>]> = self.clusters.iter().map(Vec::as_slice).collect();
-            track_moving_clusters(&frames, &trees, &clusters, params)
+            track_moving_clusters(&frames, &trees, &clusters, params, &mut |_, _| ControlFlow::Continue(()))
+                .expect("never stopped")
         }
     }
 
@@ -300,5 +317,38 @@ mod tests {
         let b = pool.install(|| driving.tracks(&params));
         assert!(!a.is_empty());
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn progress_counts_every_cluster_once_and_a_break_stops_the_search() {
+        // 12 frames x 2 clusters = 24 clusters: steps of 16 and 24.
+        let scene = scene(12);
+        let trees: Vec<KdTree> = scene.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = scene.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let clusters: Vec<&[Vec<u32>]> = scene.clusters.iter().map(Vec::as_slice).collect();
+        let params = TrackParams::default();
+        let mut seen = Vec::new();
+        let all = track_moving_clusters(&frames, &trees, &clusters, &params, &mut |done, total| {
+            seen.push((done, total));
+            ControlFlow::Continue(())
+        });
+        assert_eq!(seen, vec![(16, 24), (24, 24)]);
+        let all = all.expect("not stopped");
+        assert_eq!(
+            all.len(),
+            12,
+            "one track per frame, the car's: {:?}",
+            all.iter().map(|t| t.points.len()).collect::<Vec<_>>()
+        );
+        assert!(all.iter().all(|t| t.points.len() == 400));
+
+        let mut calls = 0;
+        let stopped = track_moving_clusters(&frames, &trees, &clusters, &params, &mut |_, _| {
+            calls += 1;
+            ControlFlow::Break(())
+        });
+        assert!(stopped.is_none());
+        assert_eq!(calls, 1, "the search stops at the first step that asks it to");
     }
 }

@@ -33,6 +33,7 @@ impl Fitter for SlowFitter {
                 best_validation_loss: None,
                 validation_loss: None,
                 fewest_live_units: None,
+                rigid_tracks: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });

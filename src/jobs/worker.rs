@@ -98,10 +98,14 @@ impl Worker {
                 iteration: p.iteration,
                 iterations: p.iterations,
                 loss: Some(p.loss),
-                eta_s: (rate > 0.0).then(|| remaining / rate),
+                eta_s: (rate > 0.0 && p.rigid_tracks.is_none()).then(|| remaining / rate),
+                rigid_tracks: p.rigid_tracks,
             };
             let now = Instant::now();
-            if now - last_persist >= PERSIST_EVERY || p.iteration >= p.iterations {
+            // The last iteration is stored at once; the rigid-track steps after it (which repeat its
+            // iteration count) only every PERSIST_EVERY.
+            let last_iteration = p.iteration >= p.iterations && p.rigid_tracks.is_none();
+            if now - last_persist >= PERSIST_EVERY || last_iteration {
                 last_persist = now;
                 match store.update_progress(job.id, &job.progress) {
                     Ok(true) => cancel.store(true, Ordering::Relaxed),

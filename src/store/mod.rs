@@ -13,7 +13,7 @@ pub mod sqlite;
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
-use crate::fit::{LossTerms, Method, ValidFitParams};
+use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams};
 use crate::geometry::Point;
 
 pub use sqlite::SqliteStore;
@@ -113,8 +113,13 @@ pub struct JobProgress {
     pub iterations: usize,
     /// Loss terms of the latest iteration, once one is done.
     pub loss: Option<LossTerms>,
-    /// Estimated seconds until the fit ends, once an iteration is done.
+    /// Estimated seconds until the fit ends, once an iteration is done (none while the rigid
+    /// tracks are built).
     pub eta_s: Option<f64>,
+    /// Set while the rigid tracks are built, after the last iteration (absent in records
+    /// written before the field existed).
+    #[serde(default)]
+    pub rigid_tracks: Option<TrackingProgress>,
 }
 
 /// A job: one fit of one method to one sequence.
