@@ -41,6 +41,12 @@ pub struct BenchArgs {
     /// Write the results as JSON here.
     #[arg(long)]
     pub json: Option<std::path::PathBuf>,
+    /// Also write the sequence as the faithful fit sees it (after ground removal, range and
+    /// height filters and ego-motion removal) into this directory, for the PyTorch reference
+    /// timing (`benches/pytorch/`): `points_KKK.npy` (N x 3 float32, metres, frame 0's
+    /// coordinates) and `clusters_KKK.npy` (N int32 DBSCAN labels, -1 for noise) per frame.
+    #[arg(long)]
+    pub export_prepared: Option<std::path::PathBuf>,
 }
 
 /// Throughput of one GEMM shape.
@@ -63,6 +69,9 @@ pub struct ModeResult {
     pub times: PhaseTimes,
     /// Mean wall time of an ordinary (non-validation) iteration (s).
     pub seconds_per_iteration: f64,
+    /// Median wall time of an ordinary iteration (s): robust to a short disturbance of the
+    /// machine during a long run, where the mean is not.
+    pub median_seconds_per_iteration: f64,
     /// Mean wall time of a validation iteration (s), if one ran after the first.
     pub seconds_per_validation: Option<f64>,
     /// MLP GFLOP/s achieved (flops of all passes over their time).
@@ -73,12 +82,23 @@ pub struct ModeResult {
     pub full_fit_s: f64,
     /// Whether `full_fit_s` was measured (true) or estimated.
     pub full_fit_measured: bool,
-    /// Peak resident memory of the process so far (MiB), from /proc/self/status.
+    /// Peak resident memory during this mode's fit (MiB), from /proc/self/status; the peak is
+    /// reset before each mode where the kernel allows it (else it is the process's peak so far).
     pub peak_rss_mib: Option<f64>,
+    /// Whether `peak_rss_mib` is this mode's own peak (true) or the process's peak so far.
+    pub peak_rss_own: bool,
+    /// Rigid tracks the fit found and the time they took (s, inside `wall_s`).
+    pub rigid_tracks: usize,
+    /// Time spent building the rigid tracks (s).
+    pub rigid_tracks_s: f64,
     /// Long-term accuracy (frame 0 to T-1, non-ground points), with --full.
     pub long_term: Option<TrajectoryMetrics>,
     /// The same, dynamic points only.
     pub long_term_dynamic: Option<TrajectoryMetrics>,
+    /// Long-term accuracy of the same fit's network alone (its rigid tracks dropped), with --full.
+    pub long_term_network: Option<TrajectoryMetrics>,
+    /// The same, dynamic points only.
+    pub long_term_network_dynamic: Option<TrajectoryMetrics>,
 }
 
 /// Scaling measurement: one mode's timings at one sequence size.
@@ -130,6 +150,12 @@ fn gemm_gflops(m: usize, k: usize, n: usize, reps: usize) -> f64 {
     2.0 * (m * n * k) as f64 / best * 1e-9
 }
 
+/// Resets this process's peak resident set size to its current one (Linux `clear_refs` 5), so
+/// the next reading is the peak of what runs in between; false where that is not possible.
+fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
 /// Peak resident set size (VmHWM) of this process, MiB; None off Linux.
 pub fn peak_rss_mib() -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -148,6 +174,7 @@ fn run_mode(
     iterations: Option<usize>,
 ) -> anyhow::Result<(ModeResult, crate::trajectory::FitReport)> {
     let params = FitParams { mode: Some(mode), iterations, ..FitParams::default() }.check(method)?;
+    let peak_rss_own = reset_peak_rss();
     let mut regular = Vec::new();
     let mut validation = Vec::new();
     let started = Instant::now();
@@ -171,6 +198,7 @@ fn run_mode(
     let report = model.report();
     let mean = |v: &[f64]| if v.is_empty() { None } else { Some(v.iter().sum::<f64>() / v.len() as f64) };
     let seconds_per_iteration = mean(&regular).unwrap_or(0.0);
+    let median_seconds_per_iteration = median(&mut regular);
     let seconds_per_validation = mean(&validation);
     let times = report.phase_times;
     let full = iterations.is_none();
@@ -184,27 +212,46 @@ fn run_mode(
         prep + seconds_per_iteration * (planned - validations) as f64
             + seconds_per_validation.unwrap_or(seconds_per_iteration) * validations as f64
     };
-    let (long_term, long_term_dynamic) = if let (true, Some(sim)) = (full, sim) {
-        let (all, dynamic) = accuracy(sim, sequence, &model, &params)?;
-        (Some(all), Some(dynamic))
-    } else {
-        (None, None)
-    };
+    let peak_rss_mib = peak_rss_mib();
+    let (long_term, long_term_dynamic, long_term_network, long_term_network_dynamic) =
+        if let (true, Some(sim)) = (full, sim) {
+            let (all, dynamic) = accuracy(sim, sequence, &model, &params)?;
+            let (net_all, net_dynamic) = accuracy(sim, sequence, &model.without_tracks(), &params)?;
+            (Some(all), Some(dynamic), Some(net_all), Some(net_dynamic))
+        } else {
+            (None, None, None, None)
+        };
     let result = ModeResult {
         mode,
         iterations: report.iterations,
         mlp_gflops: times.mlp_gflop / (times.mlp_forward_s + times.mlp_backward_s).max(1e-12),
         times,
         seconds_per_iteration,
+        median_seconds_per_iteration,
         seconds_per_validation,
         wall_s,
         full_fit_s,
         full_fit_measured: full,
-        peak_rss_mib: peak_rss_mib(),
+        peak_rss_mib,
+        peak_rss_own,
+        rigid_tracks: report.rigid_tracks,
+        rigid_tracks_s: report.rigid_tracks_seconds,
         long_term,
         long_term_dynamic,
+        long_term_network,
+        long_term_network_dynamic,
     };
     Ok((result, report.clone()))
+}
+
+/// The median of `values` (0 when empty); sorts them.
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => 0.0,
+        n if n % 2 == 1 => values[n / 2],
+        n => 0.5 * (values[n / 2 - 1] + values[n / 2]),
+    }
 }
 
 /// Long-term metrics of frame 0's points at the last frame, on the points `mbnt eval` scores
@@ -245,6 +292,10 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
 
     let sim = simulate(&SimParams { seed: args.seed, frames: args.frames, ..SimParams::default() })?;
     eprintln!("simulated seed {}: {} frames, {} points in frame 0", args.seed, sim.frames.len(), sim.frames[0].len());
+    if let Some(dir) = &args.export_prepared {
+        export_prepared(&sim.to_fit_sequence(), args.method, dir)?;
+        eprintln!("wrote the prepared frames to {}", dir.display());
+    }
     let mut modes = Vec::new();
     for &mode in &args.modes {
         eprintln!("timing {} in {} mode", args.method.name(), mode.name());
@@ -272,6 +323,37 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.json {
         std::fs::write(path, serde_json::to_vec_pretty(&result)?)
             .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Writes the frames of `sequence` as faithful mode prepares them for `method` (see
+/// [`BenchArgs::export_prepared`]).
+fn export_prepared(sequence: &Sequence, method: Method, dir: &std::path::Path) -> anyhow::Result<()> {
+    let params = FitParams { mode: Some(Mode::Faithful), ..FitParams::default() }.check(method)?;
+    let poses = match &sequence.poses {
+        Some(poses) if params.use_poses => Some(crate::fit::poses_relative_to_first(poses)?),
+        _ => None,
+    };
+    let (frames, _) = crate::fit::prepare::prepare_frames(sequence, &params, true, false, poses.as_deref())?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    for (k, frame) in frames.iter().enumerate() {
+        let points = &frame.full.points;
+        let mut labels = vec![-1i32; points.len()];
+        for (c, members) in frame.full.clusters.iter().enumerate() {
+            for &i in members {
+                labels[i as usize] = c as i32;
+            }
+        }
+        let coords: Vec<f32> = points.iter().flatten().copied().collect();
+        let write = |name: String, body: &dyn Fn(&mut Vec<u8>) -> Result<(), crate::io::WriteError>| {
+            let mut bytes = Vec::new();
+            body(&mut bytes)?;
+            let path = dir.join(name);
+            std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))
+        };
+        write(format!("points_{k:03}.npy"), &|b| crate::io::npy::write_npy_f32(b, &[points.len(), 3], &coords))?;
+        write(format!("clusters_{k:03}.npy"), &|b| crate::io::npy::write_npy_i32(b, &[points.len()], &labels))?;
     }
     Ok(())
 }
@@ -313,7 +395,7 @@ fn print_report(r: &BenchResult) {
     println!("  measured peak: {:.1} GFLOP/s", r.gemm_peak_gflops);
     println!();
     println!(
-        "{:<9} {:>6} {:>9} {:>9} | {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} | {:>8} {:>6} | {:>9} {:>8} | {:>6} {:>6}",
+        "{:<9} {:>6} {:>9} {:>9} | {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} | {:>8} {:>6} | {:>9} {:>8} | {:>6} {:>6} {:>9} {:>9}",
         "mode",
         "iters",
         "s/iter",
@@ -330,7 +412,9 @@ fn print_report(r: &BenchResult) {
         "full fit",
         "peak MiB",
         "Acc.5",
-        "Dyn.5"
+        "Dyn.5",
+        "net Acc.5",
+        "net Dyn.5"
     );
     for m in &r.modes {
         let t = &m.times;
@@ -338,7 +422,7 @@ fn print_report(r: &BenchResult) {
         let other =
             t.total_s - t.mlp_forward_s - t.mlp_backward_s - t.nearest_s - t.multibody_s - t.cycle_s - t.optimiser_s;
         println!(
-            "{:<9} {:>6} {:>9.3} {:>9} | {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} | {:>8.1} {:>5.0}% | {:>8.0}{} {:>8.0} | {:>6} {:>6}",
+            "{:<9} {:>6} {:>9.3} {:>9} | {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} {:>7.1} | {:>8.1} {:>5.0}% | {:>8.0}{} {:>8.0} | {:>6} {:>6} {:>9} {:>9}",
             m.mode.name(),
             m.iterations,
             m.seconds_per_iteration,
@@ -357,10 +441,23 @@ fn print_report(r: &BenchResult) {
             m.peak_rss_mib.unwrap_or(f64::NAN),
             m.long_term.as_ref().map_or("-".to_string(), |a| format!("{:.2}", 100.0 * a.acc_0_5)),
             m.long_term_dynamic.as_ref().map_or("-".to_string(), |a| format!("{:.2}", 100.0 * a.acc_0_5)),
+            m.long_term_network.as_ref().map_or("-".to_string(), |a| format!("{:.2}", 100.0 * a.acc_0_5)),
+            m.long_term_network_dynamic.as_ref().map_or("-".to_string(), |a| format!("{:.2}", 100.0 * a.acc_0_5)),
         );
     }
     println!("(phase columns: ms per iteration, averaged over all iterations run, validations included;");
-    println!(" s* = full-fit time estimated from the timed iterations; Acc.5 needs --full)");
+    println!(" s* = full-fit time estimated from the timed iterations; Acc.5 needs --full;");
+    println!(" net = the same fit's network alone, its rigid tracks dropped)");
+    for m in &r.modes {
+        println!(
+            "{}: median s/iteration {:.3}; {} rigid tracks in {:.1} s (inside the full fit); peak memory {}",
+            m.mode.name(),
+            m.median_seconds_per_iteration,
+            m.rigid_tracks,
+            m.rigid_tracks_s,
+            if m.peak_rss_own { "of this mode alone" } else { "of the process so far" }
+        );
+    }
     if !r.scaling.is_empty() {
         println!();
         println!("scaling: mode, frames, points/frame, preparation s, s/iteration, s/validation, full fit s (est.)");
