@@ -181,6 +181,10 @@ fn run_mode(
     let mut last = None::<Instant>;
     let mut last_print = Instant::now();
     let model = fit_sequence(sequence, method, &params, &mut |p| {
+        if p.rigid_tracks.is_some() {
+            // Steps of the rigid-track search after the last iteration, timed in rigid_tracks_s.
+            return ControlFlow::Continue(());
+        }
         let now = Instant::now();
         // The first iteration's interval would include preparation: skip it.
         if let Some(prev) = last {
