@@ -480,3 +480,40 @@ fn print_report(r: &BenchResult) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::npy::{NpyData, read_npy};
+
+    #[test]
+    fn exported_frames_are_the_faithful_fits_points_and_clusters() {
+        let sim = simulate(&SimParams { seed: 5, frames: 2, ..SimParams::default() }).unwrap();
+        let sequence = sim.to_fit_sequence();
+        let dir = tempfile::tempdir().unwrap();
+        export_prepared(&sequence, Method::Mbnt, dir.path()).unwrap();
+
+        let params = FitParams { mode: Some(Mode::Faithful), ..FitParams::default() }.check(Method::Mbnt).unwrap();
+        let poses = crate::fit::poses_relative_to_first(sequence.poses.as_ref().unwrap()).unwrap();
+        let (frames, _) = crate::fit::prepare::prepare_frames(&sequence, &params, true, false, Some(&poses)).unwrap();
+        for (k, frame) in frames.iter().enumerate() {
+            let read =
+                |name: &str| read_npy(&std::fs::read(dir.path().join(format!("{name}_{k:03}.npy"))).unwrap()).unwrap();
+            let (points, labels) = (read("points"), read("clusters"));
+            let n = frame.full.points.len();
+            assert_eq!((points.shape.clone(), labels.shape.clone()), (vec![n, 3], vec![n]));
+            let (NpyData::F32(coords), NpyData::I32(labels)) = (points.data, labels.data) else {
+                panic!("points must be float32 and labels int32");
+            };
+            assert!(coords.chunks_exact(3).zip(&frame.full.points).all(|(a, b)| a == b.as_slice()));
+            // Every cluster comes back whole under its own label; the rest is noise (-1).
+            assert!(!frame.full.clusters.is_empty());
+            for (c, members) in frame.full.clusters.iter().enumerate() {
+                assert!(members.iter().all(|&i| labels[i as usize] == c as i32));
+                assert_eq!(labels.iter().filter(|&&l| l == c as i32).count(), members.len());
+            }
+            let clustered: usize = frame.full.clusters.iter().map(Vec::len).sum();
+            assert_eq!(labels.iter().filter(|&&l| l == -1).count(), n - clustered);
+        }
+    }
+}
