@@ -335,29 +335,25 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
 /// [`BenchArgs::export_prepared`]).
 fn export_prepared(sequence: &Sequence, method: Method, dir: &std::path::Path) -> anyhow::Result<()> {
     let params = FitParams { mode: Some(Mode::Faithful), ..FitParams::default() }.check(method)?;
-    let poses = match &sequence.poses {
-        Some(poses) if params.use_poses => Some(crate::fit::poses_relative_to_first(poses)?),
-        _ => None,
-    };
+    let poses = crate::fit::fit_frame_poses(sequence, &params)?;
     let (frames, _) = crate::fit::prepare::prepare_frames(sequence, &params, true, false, poses.as_deref())?;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     for (k, frame) in frames.iter().enumerate() {
-        let points = &frame.full.points;
-        let mut labels = vec![-1i32; points.len()];
+        let n = frame.full.points.len();
+        let mut labels = vec![-1i32; n];
         for (c, members) in frame.full.clusters.iter().enumerate() {
             for &i in members {
                 labels[i as usize] = c as i32;
             }
         }
-        let coords: Vec<f32> = points.iter().flatten().copied().collect();
-        let write = |name: String, body: &dyn Fn(&mut Vec<u8>) -> Result<(), crate::io::WriteError>| {
-            let mut bytes = Vec::new();
-            body(&mut bytes)?;
-            let path = dir.join(name);
-            std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))
-        };
-        write(format!("points_{k:03}.npy"), &|b| crate::io::npy::write_npy_f32(b, &[points.len(), 3], &coords))?;
-        write(format!("clusters_{k:03}.npy"), &|b| crate::io::npy::write_npy_i32(b, &[points.len()], &labels))?;
+        let coords: Vec<f32> = frame.full.points.iter().flatten().copied().collect();
+        let (mut points_npy, mut labels_npy) = (Vec::new(), Vec::new());
+        crate::io::npy::write_npy_f32(&mut points_npy, &[n, 3], &coords)?;
+        crate::io::npy::write_npy_i32(&mut labels_npy, &[n], &labels)?;
+        for (name, bytes) in [("points", points_npy), ("clusters", labels_npy)] {
+            let path = dir.join(format!("{name}_{k:03}.npy"));
+            std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+        }
     }
     Ok(())
 }
@@ -494,8 +490,10 @@ mod tests {
         export_prepared(&sequence, Method::Mbnt, dir.path()).unwrap();
 
         let params = FitParams { mode: Some(Mode::Faithful), ..FitParams::default() }.check(Method::Mbnt).unwrap();
-        let poses = crate::fit::poses_relative_to_first(sequence.poses.as_ref().unwrap()).unwrap();
-        let (frames, _) = crate::fit::prepare::prepare_frames(&sequence, &params, true, false, Some(&poses)).unwrap();
+        let poses = crate::fit::fit_frame_poses(&sequence, &params).unwrap();
+        assert!(poses.is_some(), "the simulator gives poses and faithful mode uses them");
+        let (frames, _) =
+            crate::fit::prepare::prepare_frames(&sequence, &params, true, false, poses.as_deref()).unwrap();
         for (k, frame) in frames.iter().enumerate() {
             let read =
                 |name: &str| read_npy(&std::fs::read(dir.path().join(format!("{name}_{k:03}.npy"))).unwrap()).unwrap();

@@ -141,10 +141,7 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let frame_poses = match (&sequence.poses, params.use_poses) {
-        (Some(poses), true) => Some(poses_relative_to_first(poses)?),
-        _ => None,
-    };
+    let frame_poses = fit_frame_poses(sequence, params)?;
     let with_clusters = method.uses_rigidity() || params.rigid_tracks;
     let (frames, frame_reports) =
         prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
@@ -204,6 +201,16 @@ pub fn fit_sequence(
     let mut model = model.with_tracks(tracks);
     model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)
+}
+
+/// The transforms from each frame's sensor coordinates to the coordinates the fit works in:
+/// frame 0's, when the sequence has poses and `params.use_poses`; `None` (each frame in its own
+/// sensor coordinates) otherwise.
+pub fn fit_frame_poses(sequence: &Sequence, params: &ValidFitParams) -> Result<Option<Vec<Rigid>>, FitError> {
+    match (&sequence.poses, params.use_poses) {
+        (Some(poses), true) => Ok(Some(poses_relative_to_first(poses)?)),
+        _ => Ok(None),
+    }
 }
 
 /// Converts sensor-to-world poses (row-major 4 x 4) into transforms from each frame's sensor
