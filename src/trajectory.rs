@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::fit::Method;
 use crate::fit::encoding::encode_points;
 use crate::fit::prepare::FrameReport;
+use crate::fit::bodies::MovingBody;
 use crate::fit::tracks::RigidTrack;
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
@@ -122,9 +123,13 @@ pub struct FitReport {
     /// Moving clusters found and followed by rigid tracks (`rigid_tracks`), summed over frames.
     #[serde(default)]
     pub rigid_tracks: usize,
-    /// Wall time of finding and following them (s), included in `fit_seconds`.
+    /// Wall time of finding and following them, or the moving bodies (s), included in
+    /// `fit_seconds`.
     #[serde(default)]
     pub rigid_tracks_seconds: f64,
+    /// Moving bodies of the scene model (`moving_bodies`).
+    #[serde(default)]
+    pub moving_bodies: usize,
 }
 
 /// A fitted motion model of one sequence.
@@ -140,6 +145,11 @@ pub struct FittedModel {
     /// Rigid tracks of moving clusters (`rigid_tracks`); a query point on one follows it
     /// instead of the network. Empty when the option is off or nothing moved.
     tracks: Vec<RigidTrack>,
+    /// The scene model's moving bodies (`moving_bodies`).
+    bodies: Vec<MovingBody>,
+    /// Whether the model is a scene model: points on no body follow the still world (the poses)
+    /// instead of the network.
+    still_world: bool,
 }
 
 /// A query point within this distance (m) of a tracked cluster's points, at the query's time,
@@ -160,7 +170,16 @@ impl FittedModel {
         mlp: Mlp<f32>,
         frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
-        Self { method, time_axis, report, motion: Motion::Trajectory(mlp), frame_poses, tracks: Vec::new() }
+        Self {
+            method,
+            time_axis,
+            report,
+            motion: Motion::Trajectory(mlp),
+            frame_poses,
+            tracks: Vec::new(),
+            bodies: Vec::new(),
+            still_world: false,
+        }
     }
 
     /// A model from fitted pair flows.
@@ -179,6 +198,8 @@ impl FittedModel {
             motion: Motion::PairFlows { forward, backward },
             frame_poses,
             tracks: Vec::new(),
+            bodies: Vec::new(),
+            still_world: false,
         }
     }
 
@@ -206,15 +227,39 @@ impl FittedModel {
         self
     }
 
+    /// The scene model: moving bodies (fit coordinates) answer for their points, and the still
+    /// world (the poses) for every other point. Bodies that do not cover every frame are dropped.
+    /// Without poses there is no still world and the network answers the other points.
+    pub(crate) fn with_bodies(mut self, bodies: Vec<MovingBody>) -> Self {
+        let frames = self.time_axis.frames();
+        self.bodies = bodies.into_iter().filter(|b| b.fits(frames)).collect();
+        self.report.moving_bodies = self.bodies.len();
+        self.still_world = self.frame_poses.is_some();
+        self
+    }
+
+    /// Per frame, the transform from sensor coordinates to the fit's coordinates, when the fit
+    /// used poses.
+    pub fn frame_poses(&self) -> Option<&[Rigid]> {
+        self.frame_poses.as_deref()
+    }
+
+    /// The scene model's moving bodies (fit coordinates: frame 0's sensor coordinates with the
+    /// ego motion removed).
+    pub fn bodies(&self) -> &[MovingBody] {
+        &self.bodies
+    }
+
     /// Sets the reported fit time (s), once post-fit work has been added to it.
     pub(crate) fn set_fit_seconds(&mut self, seconds: f64, rigid_tracks_seconds: f64) {
         self.report.fit_seconds = seconds;
         self.report.rigid_tracks_seconds = rigid_tracks_seconds;
     }
 
-    /// The same model answering from the network alone (for comparisons).
+    /// The same model answering from the network alone (for comparisons): no tracks, no bodies,
+    /// no still world.
     pub fn without_tracks(&self) -> Self {
-        Self { tracks: Vec::new(), ..self.clone() }
+        Self { tracks: Vec::new(), bodies: Vec::new(), still_world: false, ..self.clone() }
     }
 
     /// Rigid tracks of moving clusters the model holds.
@@ -250,6 +295,13 @@ impl FittedModel {
             None => points,
         };
         for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * times.len())) {
+            if self.still_world {
+                // The still world: in the fit's (ego-motion-free) coordinates nothing moves.
+                for (p, row) in chunk.iter().zip(out_chunk.chunks_mut(times.len())) {
+                    row.fill(*p);
+                }
+                continue;
+            }
             match &self.motion {
                 Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, &u_times, out_chunk),
                 Motion::PairFlows { forward, backward } => {
@@ -258,6 +310,7 @@ impl FittedModel {
             }
         }
         self.apply_tracks(points, u_obs, &u_times, &mut out);
+        self.apply_bodies(points, u_obs, &u_times, &mut out);
         if let Some(poses) = &self.frame_poses {
             let to_sensor: Vec<Rigid> = u_times.iter().map(|&u| pose_at(poses, u).inverse()).collect();
             for row in out.chunks_mut(times.len()) {
@@ -302,6 +355,44 @@ impl FittedModel {
         }
     }
 
+    /// Overwrites the answers (fit coordinates) of query points that lie on a moving body at
+    /// `u_obs` with the body's motion from `u_obs` to each queried time.
+    fn apply_bodies(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+        if self.bodies.is_empty() {
+            return;
+        }
+        // The members of the frames around u_obs, moved to u_obs along their body.
+        let below = (u_obs.floor() as usize).min(self.time_axis.frames() - 1);
+        let above = (u_obs.ceil() as usize).min(self.time_axis.frames() - 1);
+        let mut members = Vec::new();
+        let mut owner = Vec::new();
+        let mut motions: Vec<Vec<Rigid>> = Vec::with_capacity(self.bodies.len());
+        for (n, body) in self.bodies.iter().enumerate() {
+            let at_obs = pose_at(&body.poses, u_obs);
+            for frame in [below, above].into_iter().take(if below == above { 1 } else { 2 }) {
+                let to_obs = at_obs.compose(&body.poses[frame].inverse());
+                members.extend(body.members[frame].iter().map(|p| to_obs.apply(p)));
+                owner.extend(std::iter::repeat_n(n, body.members[frame].len()));
+            }
+            let back = at_obs.inverse();
+            motions.push(u_times.iter().map(|&u| pose_at(&body.poses, u).compose(&back)).collect());
+        }
+        if members.is_empty() {
+            return;
+        }
+        let tree = KdTree::new(&members);
+        let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
+        for (i, p) in points.iter().enumerate() {
+            let Some(hit) = tree.nearest(p) else { continue };
+            if hit.dist2 > max_d2 {
+                continue;
+            }
+            for (j, m) in motions[owner[hit.index]].iter().enumerate() {
+                out[i * u_times.len() + j] = m.apply(p);
+            }
+        }
+    }
+
     /// Scene flow of every frame's points to the next frame: entry k has one vector (m) per
     /// point of `frames[k]`, for k in 0..T-1.
     pub fn scene_flow(&self, frames: &[Vec<Point>]) -> Vec<Vec<Point>> {
@@ -331,6 +422,8 @@ impl FittedModel {
             networks: networks.len(),
             frame_poses: self.frame_poses.clone(),
             tracks: self.tracks.clone(),
+            bodies: self.bodies.clone(),
+            still_world: self.still_world,
         };
         let header = serde_json::to_vec(&header).expect("a header always serialises");
         let mut out = MODEL_MAGIC.to_vec();
@@ -386,6 +479,12 @@ impl FittedModel {
         if header.tracks.iter().any(|t| !t.fits(frames)) {
             return Err("model header: a rigid track does not cover the sequence's frames".into());
         }
+        if header.bodies.iter().any(|b| !b.fits(frames)) {
+            return Err("model header: a moving body does not cover the sequence's frames".into());
+        }
+        if header.still_world && header.frame_poses.is_none() {
+            return Err("model header: a still world needs the frames' poses".into());
+        }
         Ok(Self {
             method: header.method,
             time_axis: header.time_axis,
@@ -393,6 +492,8 @@ impl FittedModel {
             motion,
             frame_poses: header.frame_poses,
             tracks: header.tracks,
+            bodies: header.bodies,
+            still_world: header.still_world,
         })
     }
 }
@@ -411,6 +512,12 @@ struct Header {
     /// Absent in models fitted without `rigid_tracks`.
     #[serde(default)]
     tracks: Vec<RigidTrack>,
+    /// Absent in models fitted without `moving_bodies` (and in files written before them).
+    #[serde(default)]
+    bodies: Vec<MovingBody>,
+    /// See [`FittedModel::still_world`]; absent (false) in earlier files.
+    #[serde(default)]
+    still_world: bool,
 }
 
 /// Trajectory position at fractional frame index `u` from one point's velocity row: the

@@ -36,6 +36,9 @@ pub struct EvalArgs {
     /// Run the baselines only (no fit).
     #[arg(long)]
     pub baselines_only: bool,
+    /// Skip the `rigid-frame` baseline (chained whole-frame ICP, the slowest baseline).
+    #[arg(long)]
+    pub no_rigid_frame: bool,
     /// Hyper-parameters as JSON, applied to every method (e.g. '{"iterations": 300}').
     #[arg(long)]
     pub params: Option<String>,
@@ -492,8 +495,8 @@ fn flows_from(sim: &Labelled, next_position: impl Fn(usize, &Point) -> Point) ->
         .collect()
 }
 
-/// Fits `method` and predicts with the model; with rigid tracks also the same fit's network
-/// alone (the second prediction), so both come from one fit.
+/// Fits `method` and predicts with the model; with rigid tracks or moving bodies also the same
+/// fit's network alone (the second prediction), so both come from one fit.
 fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<(Prediction, Option<Prediction>)> {
     let params = params.check(method)?;
     let sequence =
@@ -538,11 +541,12 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
             best_iteration: report.best_iteration,
         })
     };
-    let network_alone = if params.rigid_tracks {
+    let network_alone = if params.rigid_tracks || params.moving_bodies {
         eprintln!(
-            "  {}: {} rigid tracks of moving clusters ({:.1} s)",
+            "  {}: {} rigid tracks of moving clusters, {} moving bodies ({:.1} s)",
             method.name(),
             model.tracks().len(),
+            model.bodies().len(),
             model.report().rigid_tracks_seconds
         );
         Some(predict(&model.without_tracks())?)
@@ -575,7 +579,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         let still = ego_poses_motion(seq)?;
         let still = still.as_ref();
         results.push(score("zero", seq, &evaluated, &zero_motion(seq), still));
-        results.push(score("rigid-frame", seq, &evaluated, &rigid_frame_motion(seq), still));
+        if !args.no_rigid_frame {
+            results.push(score("rigid-frame", seq, &evaluated, &rigid_frame_motion(seq), still));
+        }
         if let Some(pred) = still {
             results.push(score("ego-poses", seq, &evaluated, pred, still));
         }

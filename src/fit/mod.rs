@@ -10,6 +10,7 @@ pub mod ntp;
 mod params;
 pub mod prepare;
 mod rigidity;
+pub mod bodies;
 pub mod tracks;
 
 pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};
@@ -142,7 +143,7 @@ pub fn fit_sequence(
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
     let frame_poses = fit_frame_poses(sequence, params)?;
-    let with_clusters = method.uses_rigidity() || params.rigid_tracks;
+    let with_clusters = method.uses_rigidity() || params.rigid_tracks || params.moving_bodies;
     let (frames, frame_reports) =
         prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
     let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
@@ -167,7 +168,10 @@ pub fn fit_sequence(
         report.fit_seconds = started.elapsed().as_secs_f64();
         FittedModel::pair_flows(method, sequence.time_axis(), report, fit.forward, fit.backward, frame_poses)
     };
-    if !params.rigid_tracks {
+    // The scene model's bodies need the ego motion removed: without poses every static cluster
+    // would look like a moving one.
+    let bodies = params.moving_bodies && frame_poses_known(&model);
+    if !params.rigid_tracks && !bodies {
         return Ok(model);
     }
     let tracking = std::time::Instant::now();
@@ -187,20 +191,36 @@ pub fn fit_sequence(
     last.validation_loss = None;
     last.fewest_live_units = None;
     let iteration = last.iteration;
-    let tracks = tracks::track_moving_clusters(
-        &points,
-        &trees,
-        &clusters,
-        &tracks::TrackParams::default(),
-        &mut |clusters_done, clusters| {
-            last.rigid_tracks = Some(TrackingProgress { clusters_done, clusters });
-            on_progress(&last)
-        },
-    )
-    .ok_or(FitError::Cancelled { iteration })?;
-    let mut model = model.with_tracks(tracks);
+    let mut on_step = |clusters_done, clusters| {
+        last.rigid_tracks = Some(TrackingProgress { clusters_done, clusters });
+        on_progress(&last)
+    };
+    let mut model = if bodies {
+        let axis = sequence.time_axis();
+        let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+        let found = bodies::find_moving_bodies(
+            &points,
+            &trees,
+            &clusters,
+            &times,
+            &bodies::BodyParams::default(),
+            &mut on_step,
+        )
+        .ok_or(FitError::Cancelled { iteration })?;
+        model.with_bodies(found)
+    } else {
+        let tracks =
+            tracks::track_moving_clusters(&points, &trees, &clusters, &tracks::TrackParams::default(), &mut on_step)
+                .ok_or(FitError::Cancelled { iteration })?;
+        model.with_tracks(tracks)
+    };
     model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)
+}
+
+/// Whether the model works in pose-compensated coordinates (poses given or estimated).
+fn frame_poses_known(model: &FittedModel) -> bool {
+    model.frame_poses().is_some()
 }
 
 /// The transforms from each frame's sensor coordinates to the coordinates the fit works in:

@@ -181,7 +181,14 @@ pub struct FitParams {
     /// gradient recovers it), go back to the best checkpoint with fresh optimiser moments and half
     /// the learning rate, at most this many times per fit.
     pub collapse_restarts: Option<usize>,
-    /// **Ours (default true for MBNT in fast mode, false otherwise):** after the fit, find the
+    /// **Ours (default true for MBNT in fast mode, false otherwise):** the scene model. After the
+    /// fit, find the moving bodies (`fit::bodies`): clusters that move rigidly, linked over the
+    /// sequence into one object each with an SE(3) trajectory registered to the body's own
+    /// accumulated shape; queries on their points follow the body. With poses (given or
+    /// estimated), the other points follow the still world exactly (docs/benchmarks.md, section 8).
+    /// Supersedes `rigid_tracks` (default off when this is on).
+    pub moving_bodies: Option<bool>,
+    /// **Ours (default false):** the earlier overlay: after the fit, find the
     /// clusters that one rigid motion to the next frame explains clearly better than standing
     /// still, follow each by ICP through the sequence, and answer queries on their points from
     /// these rigid tracks instead of the network (`fit::tracks`): the multi-body term holds moving
@@ -279,6 +286,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::rigid_tracks`].
     #[serde(default)]
     pub rigid_tracks: bool,
+    /// See [`FitParams::moving_bodies`].
+    #[serde(default)]
+    pub moving_bodies: bool,
 }
 
 fn default_true() -> bool {
@@ -379,7 +389,8 @@ impl FitParams {
             )?,
             hidden_negative_slope: float_in("hidden_negative_slope", self.hidden_negative_slope, 0.0, 0.0, 0.99)?,
             collapse_restarts: int_in("collapse_restarts", self.collapse_restarts, 0, 0, 100)?,
-            rigid_tracks: self.rigid_tracks.unwrap_or(fast && method == Method::Mbnt),
+            rigid_tracks: self.rigid_tracks.unwrap_or(false),
+            moving_bodies: self.moving_bodies.unwrap_or(fast && method == Method::Mbnt),
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
         })
     }
@@ -400,9 +411,10 @@ mod tests {
         assert_eq!(p.cycle_sample_points, 0);
         assert_eq!(p.d_thr_motion_fraction, 0.0);
         assert!(!p.zero_output_init);
-        assert!(!p.rigid_tracks);
-        assert!(FitParams::default().check(Method::Mbnt).unwrap().rigid_tracks);
-        assert!(!FitParams::default().check(Method::Ntp).unwrap().rigid_tracks);
+        assert!(!p.rigid_tracks && !p.moving_bodies);
+        assert!(FitParams::default().check(Method::Mbnt).unwrap().moving_bodies);
+        assert!(!FitParams::default().check(Method::Mbnt).unwrap().rigid_tracks);
+        assert!(!FitParams::default().check(Method::Ntp).unwrap().moving_bodies);
         assert!(FitParams::default().check(Method::Mbnt).unwrap().zero_output_init);
         assert!(!FitParams::default().check(Method::Ntp).unwrap().zero_output_init);
         assert_eq!(p.learning_rate, 0.003);

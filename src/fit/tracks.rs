@@ -81,14 +81,14 @@ impl RigidTrack {
 
 /// Buffers of [`mean_distance_m`], reused across the many calls of one cluster's search.
 #[derive(Default)]
-struct DistanceScratch {
+pub(crate) struct DistanceScratch {
     moved: Vec<Point>,
     hits: Vec<Nearest>,
 }
 
 /// Mean distance (m) from `src` moved by `motion` to the nearest point of `tree`, each distance
 /// capped at `cap_m` so that a few stray points do not dominate.
-fn mean_distance_m(src: &[Point], motion: &Rigid, tree: &KdTree, cap_m: f32, scratch: &mut DistanceScratch) -> f64 {
+pub(crate) fn mean_distance_m(src: &[Point], motion: &Rigid, tree: &KdTree, cap_m: f32, scratch: &mut DistanceScratch) -> f64 {
     scratch.moved.clear();
     scratch.moved.extend(src.iter().map(|p| motion.apply(p)));
     scratch.hits.resize(src.len(), Nearest { index: 0, dist2: 0.0 });
@@ -168,6 +168,47 @@ pub fn track_moving_clusters(
     Some(tracks)
 }
 
+/// The test step of one cluster of frame `k`: when one rigid motion to the frame `gap` frames
+/// later (earlier, near the end) explains the cluster clearly better than standing still, that
+/// frame and the motion; `None` when the cluster is not clearly moving. `src` is the cluster's
+/// registration subsample.
+pub(crate) fn moving_step(
+    k: usize,
+    gap: usize,
+    src: &[Point],
+    frames: &[&[Point]],
+    trees: &[&KdTree],
+    params: &TrackParams,
+) -> Option<(usize, Rigid)> {
+    let t = frames.len();
+    if src.len() < 3 || gap == 0 {
+        return None;
+    }
+    let probe = if k + gap < t {
+        k + gap
+    } else if k >= gap {
+        k - gap
+    } else {
+        return None;
+    };
+    let mut scratch = DistanceScratch::default();
+    let still = mean_distance_m(src, &Rigid::identity(), trees[probe], params.max_corr_dist_m, &mut scratch);
+    if still < params.min_gain_m {
+        return None; // no motion can gain enough
+    }
+    let (first, moved) = search_first_step(src, trees[probe], frames[probe], params, &mut scratch);
+    if still - moved < params.min_gain_m || moved > params.max_residual_share * still {
+        return None;
+    }
+    Some((probe, first))
+}
+
+/// An even subsample of at most `max_points` of a cluster's points.
+pub(crate) fn cluster_subsample(frame: &[Point], cluster: &[u32], max_points: usize) -> Vec<Point> {
+    let stride = cluster.len().div_ceil(max_points).max(1);
+    cluster.iter().step_by(stride).map(|&i| frame[i as usize]).collect()
+}
+
 /// The track of one cluster of frame `k`, or `None` when it is not clearly moving.
 fn track_cluster(
     k: usize,
@@ -177,22 +218,8 @@ fn track_cluster(
     params: &TrackParams,
 ) -> Option<RigidTrack> {
     let t = frames.len();
-    if cluster.len() < 3 {
-        return None;
-    }
-    let stride = cluster.len().div_ceil(params.max_track_points).max(1);
-    let src: Vec<Point> = cluster.iter().step_by(stride).map(|&i| frames[k][i as usize]).collect();
-    // The test step goes to the next frame (the previous one for the last frame).
-    let probe = if k + 1 < t { k + 1 } else { k - 1 };
-    let mut scratch = DistanceScratch::default();
-    let still = mean_distance_m(&src, &Rigid::identity(), trees[probe], params.max_corr_dist_m, &mut scratch);
-    if still < params.min_gain_m {
-        return None; // no motion can gain enough
-    }
-    let (first, moved) = search_first_step(&src, trees[probe], frames[probe], params, &mut scratch);
-    if still - moved < params.min_gain_m || moved > params.max_residual_share * still {
-        return None;
-    }
+    let src = cluster_subsample(frames[k], cluster, params.max_track_points);
+    let (probe, first) = moving_step(k, 1, &src, frames, trees, params)?;
     let mut motions = vec![Rigid::identity(); t];
     // Forward from k, then backward from k: each step starts from the constant-velocity guess
     // (the last step repeated) and is refined by ICP against that frame.

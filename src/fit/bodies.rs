@@ -1,0 +1,809 @@
+//! **Ours:** moving bodies, each one object over the whole sequence with an SE(3) trajectory.
+//!
+//! The fitted network holds moving cars still (the multi-body term's trivial minimum,
+//! docs/benchmarks.md section 3), and per-cluster ICP chains (`tracks`) give every sighting of a
+//! car its own track and drift along its flank. Here a car is one body:
+//!
+//! 1. **seeds**: every DBSCAN cluster of every frame is tested as the rigid tracks test it (one
+//!    rigid motion to the neighbouring frame explains it clearly better than standing still);
+//! 2. **tracking by registration to the body's own model**: from the largest untaken seed, the
+//!    body is followed frame by frame to both ends of the sequence. Each step predicts the pose at
+//!    constant velocity, takes the frame's clusters that lie on the predicted body (association),
+//!    registers their points to the body's accumulated model (its points of all frames so far, in
+//!    body coordinates), and adds them to the model. The model grows towards the whole car, so a
+//!    sweep that sees only a flank is held by the shape seen before (the aperture problem of a
+//!    pairwise chain), and each frame's pose is a registration to the model, not the end of a
+//!    chain of pairwise steps. A frame with no associated cluster keeps the prediction;
+//! 3. **smoothing**: the observed poses are fitted with a planar motion of constant acceleration
+//!    and constant turn-rate change (quadratic in time for heading and position, least squares),
+//!    and frames far from that motion are re-fitted without them; unobserved frames take the
+//!    smooth motion;
+//! 4. **still or moving from all frames**: a body whose centre moves less than
+//!    [`BodyParams::min_travel_m`] over the frames it is seen in is dropped (its clusters stay
+//!    with the still world).
+//!
+//! Pure computation on prepared frames (fit coordinates, ego motion removed): no I/O,
+//! deterministic (the seed tests run in parallel, the tracking in a fixed order), with a
+//! progress callback that can stop it.
+
+use std::collections::HashMap;
+use std::ops::ControlFlow;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
+use crate::geometry::rigid::{Rigid, fit_rigid_icp};
+
+use super::tracks::{DistanceScratch, TrackParams, cluster_subsample, mean_distance_m, moving_step};
+
+/// Parameters of the body tracker; the defaults are what docs/benchmarks.md measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodyParams {
+    /// The seed test (a cluster clearly moving between two frames).
+    pub seed: TrackParams,
+    /// A cluster belongs to a body at a frame when at least [`Self::min_share`] of its points lie
+    /// within this distance (m) of the body's model at its predicted pose.
+    pub association_radius_m: f32,
+    /// See [`Self::association_radius_m`].
+    pub min_share: f64,
+    /// The body model keeps one point per cube of this edge (m).
+    pub model_voxel_m: f32,
+    /// ICP rounds of a frame's registration to the model.
+    pub icp_iterations: usize,
+    /// Correspondences of the final registration rounds lie within this distance (m).
+    pub fine_corr_dist_m: f32,
+    /// A body whose centre moves less than this (m) over its observed frames is still.
+    pub min_travel_m: f64,
+    /// Member points are kept at one per cube of this edge (m): enough to tell which query
+    /// points lie on the body (within 0.4 m).
+    pub member_voxel_m: f32,
+    /// An observed pose farther than this (m, at the body's centre) from the smooth motion is
+    /// an outlier and takes the smooth motion's pose.
+    pub smooth_outlier_m: f64,
+}
+
+impl Default for BodyParams {
+    fn default() -> Self {
+        Self {
+            seed: TrackParams::default(),
+            association_radius_m: 0.5,
+            min_share: 0.3,
+            model_voxel_m: 0.1,
+            icp_iterations: 20,
+            fine_corr_dist_m: 0.3,
+            min_travel_m: 0.5,
+            member_voxel_m: 0.15,
+            smooth_outlier_m: 0.3,
+        }
+    }
+}
+
+/// One moving object over the whole sequence.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MovingBody {
+    /// Identity of the body within its sequence (0, 1, ... in the order found).
+    pub id: u32,
+    /// Per frame: the body-to-fit-coordinates motion (the body frame has its origin at the centre
+    /// of the body's points and its x axis along its direction of travel, z up).
+    pub poses: Vec<Rigid>,
+    /// Per frame: whether the body was seen (clusters associated) or its pose predicted.
+    pub observed: Vec<bool>,
+    /// Per frame: the body's points (fit coordinates), thinned to one per
+    /// [`BodyParams::member_voxel_m`] cube; empty where it was not seen.
+    pub members: Vec<Vec<Point>>,
+    /// Per frame: the number of the frame's fitted points on the body (before thinning).
+    pub member_counts: Vec<usize>,
+    /// The box holding the body's model points, in body coordinates: lower corner (m).
+    pub extent_min_m: [f32; 3],
+    /// Upper corner (m).
+    pub extent_max_m: [f32; 3],
+}
+
+impl MovingBody {
+    /// Whether the body belongs to a sequence of `frames` frames.
+    pub fn fits(&self, frames: usize) -> bool {
+        self.poses.len() == frames
+            && self.observed.len() == frames
+            && self.members.len() == frames
+            && self.member_counts.len() == frames
+    }
+
+    /// The frames the body was seen in.
+    pub fn frames_seen(&self) -> Vec<usize> {
+        (0..self.observed.len()).filter(|&k| self.observed[k]).collect()
+    }
+}
+
+/// The second seed test compares frames this far apart.
+const SLOW_SEED_GAP: usize = 3;
+
+/// Seeds tested between two calls of the progress callback.
+const SEEDS_PER_STEP: usize = 16;
+
+/// The moving bodies of a sequence. `frames[k]` are frame k's points in fit coordinates (ego
+/// motion removed) with `trees[k]` built over them, `clusters[k]` its DBSCAN clusters (indices
+/// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
+/// randomness, and the result does not depend on the thread count.
+///
+/// `on_step(done, total)` reports the clusters tested as seeds; returning `Break` stops the
+/// search and the function returns `None`.
+pub fn find_moving_bodies(
+    frames: &[&[Point]],
+    trees: &[&KdTree],
+    clusters: &[&[Vec<u32>]],
+    times: &[f64],
+    params: &BodyParams,
+    on_step: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+) -> Option<Vec<MovingBody>> {
+    let t = frames.len();
+    if t < 2 {
+        return Some(Vec::new());
+    }
+    let work: Vec<(usize, usize)> = (0..t).flat_map(|k| (0..clusters[k].len()).map(move |c| (k, c))).collect();
+    let mut seeds: Vec<(usize, usize, usize, Rigid)> = Vec::new();
+    for (step, chunk) in work.chunks(SEEDS_PER_STEP).enumerate() {
+        let found: Vec<_> = chunk
+            .par_iter()
+            .filter_map(|&(k, c)| {
+                let src = cluster_subsample(frames[k], &clusters[k][c], params.seed.max_track_points);
+                // One frame apart, then three for bodies too slow to show in one step (a car
+                // starting to turn).
+                moving_step(k, 1, &src, frames, trees, &params.seed)
+                    .or_else(|| moving_step(k, SLOW_SEED_GAP, &src, frames, trees, &params.seed))
+                    .map(|(probe, m)| (k, c, probe, m))
+            })
+            .collect();
+        seeds.extend(found);
+        let done = (step * SEEDS_PER_STEP + chunk.len()).min(work.len());
+        if on_step(done, work.len()).is_break() {
+            return None;
+        }
+    }
+    // Largest seeds first: they give the body model the most of its shape to start from.
+    seeds.sort_by_key(|&(k, c, _, _)| (std::cmp::Reverse(clusters[k][c].len()), k, c));
+    let boxes: Vec<Vec<Aabb>> =
+        (0..t).map(|k| clusters[k].iter().map(|c| Aabb::of(c.iter().map(|&i| &frames[k][i as usize]))).collect()).collect();
+    let mut taken: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
+    // Per frame and point: its cluster, or -1.
+    let labels: Vec<Vec<i32>> = (0..t)
+        .map(|k| {
+            let mut label = vec![-1i32; frames[k].len()];
+            for (ci, cluster) in clusters[k].iter().enumerate() {
+                for &i in cluster {
+                    label[i as usize] = ci as i32;
+                }
+            }
+            label
+        })
+        .collect();
+    let mut bodies = Vec::new();
+    for &(k, c, probe, first) in &seeds {
+        if taken[k][c] {
+            continue;
+        }
+        let tracked = track_body(k, c, probe, first, frames, trees, clusters, &boxes, &labels, &taken, times, params);
+        if !tracked.moving {
+            // Still after all: only its seed is taken, so its neighbours may still seed bodies.
+            taken[k][c] = true;
+            continue;
+        }
+        for &(j, cluster) in &tracked.clusters {
+            taken[j][cluster] = true;
+        }
+        let mut body = tracked.body;
+        body.id = bodies.len() as u32;
+        bodies.push(body);
+    }
+    Some(bodies)
+}
+
+/// An axis-aligned box.
+#[derive(Debug, Clone, Copy)]
+struct Aabb {
+    min: [f32; 3],
+    max: [f32; 3],
+}
+
+impl Aabb {
+    fn of<'a>(points: impl Iterator<Item = &'a Point>) -> Aabb {
+        let mut b = Aabb { min: [f32::INFINITY; 3], max: [f32::NEG_INFINITY; 3] };
+        for p in points {
+            for c in 0..3 {
+                b.min[c] = b.min[c].min(p[c]);
+                b.max[c] = b.max[c].max(p[c]);
+            }
+        }
+        b
+    }
+
+    fn diagonal_m(&self) -> f32 {
+        (0..3).map(|c| (self.max[c] - self.min[c]).powi(2)).sum::<f32>().sqrt()
+    }
+
+    fn overlaps(&self, other: &Aabb, margin_m: f32) -> bool {
+        (0..3).all(|c| self.min[c] - margin_m <= other.max[c] && other.min[c] - margin_m <= self.max[c])
+    }
+}
+
+/// One cube per point: keeps the first point that falls into each cube of edge `voxel_m`.
+struct VoxelSet {
+    voxel_m: f32,
+    cells: HashMap<[i32; 3], ()>,
+}
+
+impl VoxelSet {
+    fn new(voxel_m: f32) -> Self {
+        Self { voxel_m, cells: HashMap::new() }
+    }
+
+    /// Whether `p` falls into a cube not seen before (and marks it seen).
+    fn insert(&mut self, p: &Point) -> bool {
+        let key = std::array::from_fn(|c| (p[c] / self.voxel_m).floor() as i32);
+        self.cells.insert(key, ()).is_none()
+    }
+}
+
+/// Points thinned to one per cube of edge `voxel_m`, in their order.
+fn thin(points: impl Iterator<Item = Point>, voxel_m: f32) -> Vec<Point> {
+    let mut seen = VoxelSet::new(voxel_m);
+    points.filter(|p| seen.insert(p)).collect()
+}
+
+/// A body as tracked from one seed, before the still-or-moving decision.
+struct Tracked {
+    body: MovingBody,
+    /// (frame, cluster) pairs on the body.
+    clusters: Vec<(usize, usize)>,
+    /// How far its centre moved over its observed frames (m, the largest distance from its
+    /// position in the seed frame).
+    travel_m: f64,
+    /// Whether it is moving, judged from all its observed frames.
+    moving: bool,
+}
+
+/// Follows the body of cluster `c` of frame `k` (its test step `first` to frame `probe`) through
+/// every frame.
+#[allow(clippy::too_many_arguments)]
+fn track_body(
+    k: usize,
+    c: usize,
+    probe: usize,
+    first: Rigid,
+    frames: &[&[Point]],
+    trees: &[&KdTree],
+    clusters: &[&[Vec<u32>]],
+    boxes: &[Vec<Aabb>],
+    labels: &[Vec<i32>],
+    taken: &[Vec<bool>],
+    times: &[f64],
+    params: &BodyParams,
+) -> Tracked {
+    let t = frames.len();
+    // Model points in seed-frame coordinates (the body's pose at frame k is the identity).
+    let mut voxels = VoxelSet::new(params.model_voxel_m);
+    let mut model: Vec<Point> =
+        clusters[k][c].iter().map(|&i| frames[k][i as usize]).filter(|p| voxels.insert(p)).collect();
+    let mut model_tree = KdTree::new(&model);
+    let mut poses = vec![Rigid::identity(); t];
+    let mut observed = vec![false; t];
+    let mut on_body: Vec<Picked> = vec![Picked::default(); t];
+    observed[k] = true;
+    on_body[k] = Picked { points: clusters[k][c].clone(), clusters: vec![c] };
+    let max_src = params.seed.max_track_points;
+    for forward in [true, false] {
+        let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
+        let mut previous = Rigid::identity();
+        let mut current = Rigid::identity();
+        for (n, j) in steps.into_iter().enumerate() {
+            let guess = if n == 0 {
+                // The seed step, per frame (planar, a fraction of it when the test spanned
+                // several frames), reversed when this chain runs the other way.
+                let gap = probe.abs_diff(k) as f64;
+                let step = planar_part(&first);
+                let per_frame = planar(step.translation[0] / gap, step.translation[1] / gap, yaw_of(&step) / gap);
+                if forward == (probe > k) { per_frame } else { per_frame.inverse() }
+            } else {
+                // Constant velocity, scaled to uneven frame spacing by the translation only.
+                let last = if forward { j - 1 } else { j + 1 };
+                let before = if forward { j - 2 } else { j + 2 };
+                let ratio = ((times[j] - times[last]) / (times[last] - times[before])).clamp(0.25, 4.0);
+                // The step is kept on the ground plane (heading and horizontal motion only): a
+                // sparse sweep's tilt or height error must not be repeated into every later frame.
+                let step = planar_part(&current.compose(&previous.inverse()));
+                let mut scaled = step;
+                if (ratio - 1.0).abs() > 1e-9 {
+                    let yaw = yaw_of(&step) * ratio;
+                    scaled = planar(step.translation[0] * ratio, step.translation[1] * ratio, yaw);
+                }
+                scaled.compose(&current)
+            };
+            let mut picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 1.0);
+            if picked.points.len() < MIN_OBSERVED_POINTS {
+                // A worse prediction (a sparse sweep, a changed speed): look twice as far.
+                picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 2.0);
+            }
+            let pose = if picked.points.len() < MIN_OBSERVED_POINTS {
+                guess
+            } else {
+                let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
+                let stride = points.len().div_ceil(max_src).max(1);
+                let src: Vec<Point> = points.iter().step_by(stride).copied().collect();
+                // Frame j -> model: coarse rounds, then fine rounds that ignore far points.
+                let coarse = fit_rigid_icp(
+                    &src,
+                    &model_tree,
+                    &model,
+                    guess.inverse(),
+                    params.icp_iterations,
+                    params.association_radius_m.max(params.fine_corr_dist_m) * 2.0,
+                );
+                let to_model =
+                    fit_rigid_icp(&src, &model_tree, &model, coarse, params.icp_iterations, params.fine_corr_dist_m);
+                let before = model.len();
+                model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
+                if model.len() != before {
+                    model_tree = KdTree::new(&model);
+                }
+                observed[j] = true;
+                on_body[j] = picked;
+                to_model.inverse()
+            };
+            previous = current;
+            current = pose;
+            poses[j] = pose;
+        }
+    }
+    let centre = centroid(&model);
+    let held = smooth_poses(&mut poses, &observed, times, centre, params.smooth_outlier_m);
+    let seen = observed.iter().filter(|&&o| o).count();
+    // Still or moving, from every observed frame: the seed's points carried by the body's motion
+    // must fit that frame clearly better than left standing (the seed test, frame by frame) in
+    // at least half of them. A static cluster that slid a little on a few registrations fails.
+    let src = cluster_subsample(frames[k], &clusters[k][c], max_src);
+    let mut scratch = DistanceScratch::default();
+    let cap_m = params.seed.max_corr_dist_m;
+    let (mut tested, mut clear) = (0usize, 0usize);
+    for j in (0..t).filter(|&j| j != k && observed[j]) {
+        let still = mean_distance_m(&src, &Rigid::identity(), trees[j], cap_m, &mut scratch);
+        let moved = mean_distance_m(&src, &poses[j], trees[j], cap_m, &mut scratch);
+        tested += 1;
+        if still - moved >= params.seed.min_gain_m && moved <= params.seed.max_residual_share * still {
+            clear += 1;
+        }
+    }
+    let travel_m = (0..t)
+        .filter(|&j| observed[j])
+        .map(|j| {
+            let p = poses[j].apply_f64(centre);
+            (0..3).map(|i| (p[i] - centre[i]).powi(2)).sum::<f64>().sqrt()
+        })
+        .fold(0.0, f64::max);
+    // The body frame: origin at the model's centre, x along the direction of travel.
+    let heading = travel_heading(&poses, k, centre);
+    let (s, co) = heading.sin_cos();
+    let body_to_seed =
+        Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: centre };
+    let seed_to_body = body_to_seed.inverse();
+    let mut extent_min_m = [f32::INFINITY; 3];
+    let mut extent_max_m = [f32::NEG_INFINITY; 3];
+    for p in &model {
+        let q = seed_to_body.apply(p);
+        for i in 0..3 {
+            extent_min_m[i] = extent_min_m[i].min(q[i]);
+            extent_max_m[i] = extent_max_m[i].max(q[i]);
+        }
+    }
+    let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
+    let members: Vec<Vec<Point>> = (0..t)
+        .map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m))
+        .collect();
+    let clusters_on_body = (0..t).flat_map(|j| on_body[j].clusters.iter().map(move |&ci| (j, ci))).collect();
+    let body = MovingBody {
+        id: 0,
+        poses: poses.iter().map(|p| p.compose(&body_to_seed)).collect(),
+        observed,
+        members,
+        member_counts,
+        extent_min_m,
+        extent_max_m,
+    };
+    // A body is a consistent object: seen often enough to judge, its registrations mostly on one
+    // smooth motion (a "body" that hops between unrelated clusters is not), clearly not standing
+    // still, and travelling.
+    let moving = seen >= MIN_FRAMES_SEEN
+        && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
+        && 2 * clear >= tested
+        && travel_m >= params.min_travel_m;
+    Tracked { body, clusters: clusters_on_body, travel_m, moving }
+}
+
+/// A frame's points on a body: whole clusters, and loose points of other clusters or of none.
+#[derive(Debug, Clone, Default)]
+struct Picked {
+    /// Indices into the frame's points.
+    points: Vec<u32>,
+    /// Clusters taken whole.
+    clusters: Vec<usize>,
+}
+
+/// A body must be seen in at least this many frames.
+const MIN_FRAMES_SEEN: usize = 4;
+
+/// At least this share of a body's observed frames must lie on its smooth motion.
+const MIN_SMOOTH_SHARE: f64 = 0.7;
+
+/// A cluster's box diagonal may exceed the body's by at most this (m) for it to join whole.
+const MAX_GROWTH_M: f32 = 2.0;
+
+/// Fewer points than this on a body's predicted place do not make an observation.
+const MIN_OBSERVED_POINTS: usize = 10;
+
+/// The points of frame `j` on the body's `model` at pose `guess`: every untaken cluster with at
+/// least [`BodyParams::min_share`] of its points within the association radius of the posed
+/// model (times `widen`), and the points of no cluster or of untaken clusters that lie within
+/// the fine correspondence distance (times `widen`) of it (a car that DBSCAN merged with a pole,
+/// or too sparse to be a cluster).
+#[allow(clippy::too_many_arguments)]
+fn associate(
+    guess: &Rigid,
+    model: &[Point],
+    j: usize,
+    frames: &[&[Point]],
+    clusters: &[&[Vec<u32>]],
+    boxes: &[Vec<Aabb>],
+    taken: &[Vec<bool>],
+    labels: &[i32],
+    params: &BodyParams,
+    widen: f32,
+) -> Picked {
+    let posed: Vec<Point> = model.iter().map(|p| guess.apply(p)).collect();
+    let posed_box = Aabb::of(posed.iter());
+    let posed_tree = KdTree::new(&posed);
+    let radius_m = params.association_radius_m * widen;
+    let r2 = radius_m * radius_m;
+    let mut picked = Picked::default();
+    let mut whole = vec![false; clusters[j].len()];
+    // A cluster much larger than the body is not the body (a wall it drives past): only its
+    // points near the body may join, as loose points.
+    let max_diagonal_m = posed_box.diagonal_m() + MAX_GROWTH_M;
+    for (ci, cluster) in clusters[j].iter().enumerate() {
+        if taken[j][ci] || !boxes[j][ci].overlaps(&posed_box, radius_m) || boxes[j][ci].diagonal_m() > max_diagonal_m
+        {
+            continue;
+        }
+        let sample = cluster_subsample(frames[j], cluster, 256);
+        let near = sample.iter().filter(|p| posed_tree.nearest(p).is_some_and(|h| h.dist2 <= r2)).count();
+        if near as f64 >= params.min_share * sample.len() as f64 {
+            whole[ci] = true;
+            picked.clusters.push(ci);
+            picked.points.extend_from_slice(cluster);
+        }
+    }
+    let loose_m = params.fine_corr_dist_m * widen;
+    let loose2 = loose_m * loose_m;
+    let near_box = Aabb { min: posed_box.min.map(|v| v - loose_m), max: posed_box.max.map(|v| v + loose_m) };
+    for (i, p) in frames[j].iter().enumerate() {
+        let label = labels[i];
+        let free = label < 0 || !(whole[label as usize] || taken[j][label as usize]);
+        if free
+            && (0..3).all(|c| p[c] >= near_box.min[c] && p[c] <= near_box.max[c])
+            && posed_tree.nearest(p).is_some_and(|h| h.dist2 <= loose2)
+        {
+            picked.points.push(i as u32);
+        }
+    }
+    picked.points.sort_unstable();
+    picked
+}
+
+/// Mean of the points (f64).
+fn centroid(points: &[Point]) -> [f64; 3] {
+    let mut sum = [0f64; 3];
+    for p in points {
+        for c in 0..3 {
+            sum[c] += f64::from(p[c]);
+        }
+    }
+    let n = points.len().max(1) as f64;
+    sum.map(|s| s / n)
+}
+
+/// Heading (rad, about z) of the body's direction of travel at frame `k` (its centre's motion
+/// between the neighbouring frames): a vehicle's length axis. 0 when it barely moves.
+fn travel_heading(poses: &[Rigid], k: usize, centre: [f64; 3]) -> f64 {
+    let a = poses[k.saturating_sub(1)].apply_f64(centre);
+    let b = poses[(k + 1).min(poses.len() - 1)].apply_f64(centre);
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    if dx.hypot(dy) < 1e-3 { 0.0 } else { dy.atan2(dx) }
+}
+
+/// A motion on the ground plane: rotation `yaw_rad` about z, then translation (x, y, 0).
+fn planar(x_m: f64, y_m: f64, yaw_rad: f64) -> Rigid {
+    let (s, c) = yaw_rad.sin_cos();
+    Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [x_m, y_m, 0.0] }
+}
+
+/// The planar part of a motion: its heading change and horizontal translation.
+fn planar_part(m: &Rigid) -> Rigid {
+    planar(m.translation[0], m.translation[1], yaw_of(m))
+}
+
+/// Yaw (rad) of a rotation about z (the rotation's x axis projected on the ground plane).
+fn yaw_of(r: &Rigid) -> f64 {
+    r.rotation[1][0].atan2(r.rotation[0][0])
+}
+
+/// Least-squares polynomial of degree `degree` through (x, y) with weights, as coefficients
+/// c_0 + c_1 x + ...; solved by normal equations in f64 (at most 3 x 3, x centred by the caller).
+fn poly_fit(xs: &[f64], ys: &[f64], degree: usize) -> Vec<f64> {
+    let n = degree + 1;
+    let mut a = vec![vec![0f64; n + 1]; n];
+    for (&x, &y) in xs.iter().zip(ys) {
+        let powers: Vec<f64> = (0..n).map(|i| x.powi(i as i32)).collect();
+        for i in 0..n {
+            for j in 0..n {
+                a[i][j] += powers[i] * powers[j];
+            }
+            a[i][n] += powers[i] * y;
+        }
+    }
+    // Gaussian elimination with partial pivoting.
+    for col in 0..n {
+        let pivot = (col..n).max_by(|&p, &q| a[p][col].abs().total_cmp(&a[q][col].abs())).unwrap_or(col);
+        a.swap(col, pivot);
+        if a[col][col].abs() < 1e-12 {
+            return vec![0.0; n];
+        }
+        for row in 0..n {
+            if row != col {
+                let f = a[row][col] / a[col][col];
+                for k in col..=n {
+                    a[row][k] -= f * a[col][k];
+                }
+            }
+        }
+    }
+    (0..n).map(|i| a[i][n] / a[i][i]).collect()
+}
+
+/// The polynomial at x.
+fn poly_eval(coeffs: &[f64], x: f64) -> f64 {
+    coeffs.iter().rev().fold(0.0, |acc, &c| acc * x + c)
+}
+
+/// The polynomial's derivative at x.
+fn poly_slope(coeffs: &[f64], x: f64) -> f64 {
+    coeffs.iter().enumerate().skip(1).rev().fold(0.0, |acc, (i, &c)| acc * x + i as f64 * c)
+}
+
+/// Fills in the poses of unobserved frames and of outlying registrations from a smooth planar
+/// motion of the body's centre: x, y and heading as quadratics in time (constant acceleration and
+/// constant change of turn rate), fitted to the observed frames. Observed frames whose centre lies
+/// farther than `outlier_m` from the fit are dropped from it once and re-fitted, and take its pose;
+/// the other observed frames keep their registration. z, roll and pitch stay as tracked. Needs four
+/// observed frames; with fewer the poses stay as tracked.
+///
+/// Returns how many observed frames the smooth motion holds within `outlier_m` (all of them when
+/// there are too few to fit).
+fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [f64; 3], outlier_m: f64) -> usize {
+    let seen: Vec<usize> = (0..poses.len()).filter(|&j| observed[j]).collect();
+    if seen.len() < 4 {
+        return seen.len();
+    }
+    let t0 = seen.iter().map(|&j| times[j]).sum::<f64>() / seen.len() as f64;
+    let pos: Vec<[f64; 3]> = poses.iter().map(|p| p.apply_f64(centre)).collect();
+    // Headings unwrapped along the frames so the fit does not see jumps of 2 pi.
+    let mut yaws: Vec<f64> = poses.iter().map(yaw_of).collect();
+    for j in 1..yaws.len() {
+        while yaws[j] - yaws[j - 1] > std::f64::consts::PI {
+            yaws[j] -= 2.0 * std::f64::consts::PI;
+        }
+        while yaws[j] - yaws[j - 1] < -std::f64::consts::PI {
+            yaws[j] += 2.0 * std::f64::consts::PI;
+        }
+    }
+    let fit = |use_: &[usize]| -> [Vec<f64>; 3] {
+        let xs: Vec<f64> = use_.iter().map(|&j| times[j] - t0).collect();
+        let px: Vec<f64> = use_.iter().map(|&j| pos[j][0]).collect();
+        let py: Vec<f64> = use_.iter().map(|&j| pos[j][1]).collect();
+        let pyaw: Vec<f64> = use_.iter().map(|&j| yaws[j]).collect();
+        [poly_fit(&xs, &px, 2), poly_fit(&xs, &py, 2), poly_fit(&xs, &pyaw, 2)]
+    };
+    let mut coeffs = fit(&seen);
+    let off = |coeffs: &[Vec<f64>; 3], j: usize| {
+        let x = times[j] - t0;
+        (poly_eval(&coeffs[0], x) - pos[j][0]).hypot(poly_eval(&coeffs[1], x) - pos[j][1])
+    };
+    let inliers: Vec<usize> = seen.iter().copied().filter(|&j| off(&coeffs, j) <= outlier_m).collect();
+    if inliers.len() < seen.len() && inliers.len() >= 4 {
+        coeffs = fit(&inliers);
+    }
+    let held = seen.iter().filter(|&&j| off(&coeffs, j) <= outlier_m).count();
+    let (first, last) = (times[seen[0]] - t0, times[seen[seen.len() - 1]] - t0);
+    for j in 0..poses.len() {
+        if observed[j] && off(&coeffs, j) <= outlier_m {
+            continue; // a good registration: kept, it also holds what a quadratic cannot
+        }
+        let x = times[j] - t0;
+        // Outside the observed span, constant velocity and turn rate from its end: a quadratic
+        // extrapolated far runs away.
+        let edge = x.clamp(first, last);
+        let at_edge = |c: &[f64]| poly_eval(c, edge) + poly_slope(c, edge) * (x - edge);
+        let yaw = at_edge(&coeffs[2]);
+        // Keep the observed tilt: the rotation's residual after removing its own yaw.
+        let (s, c) = (yaw - yaws[j]).sin_cos();
+        let turn = Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] };
+        let rotation = turn.compose(&poses[j]).rotation;
+        let at = [at_edge(&coeffs[0]), at_edge(&coeffs[1]), pos[j][2]];
+        let rotated = Rigid { rotation, translation: [0.0; 3] }.apply_f64(centre);
+        poses[j] = Rigid { rotation, translation: std::array::from_fn(|i| at[i] - rotated[i]) };
+    }
+    held
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Points on the visible faces of an axis-aligned box seen from the origin side (the faces
+    /// whose outward normal points towards -y, plus the top), resampled each frame.
+    fn box_surface(rng: &mut ChaCha8Rng, n: usize, size: [f32; 3]) -> Vec<Point> {
+        (0..n)
+            .map(|_| {
+                let mut p: [f32; 3] = std::array::from_fn(|c| rng.random_range(0.0..size[c]));
+                let face = rng.random_range(0..6);
+                let axis = face / 2;
+                p[axis] = if face % 2 == 0 { 0.0 } else { size[axis] };
+                p
+            })
+            .collect()
+    }
+
+    struct Scene {
+        frames: Vec<Vec<Point>>,
+        clusters: Vec<Vec<Vec<u32>>>,
+        times: Vec<f64>,
+        /// Per moving box, its true body-to-fit motion per frame.
+        truth: Vec<Vec<Rigid>>,
+    }
+
+    /// A wall, and three car-sized boxes: one driving straight at 10 m/s, one turning at
+    /// 0.3 rad/s at 8 m/s, one accelerating from 2 m/s at 3 m/s^2. 10 Hz.
+    fn scene(frames: usize) -> Scene {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let car = [4.2f32, 1.8, 1.5];
+        let mut s = Scene { frames: Vec::new(), clusters: Vec::new(), times: Vec::new(), truth: vec![Vec::new(); 3] };
+        for k in 0..frames {
+            let t = 0.1 * k as f64;
+            let motions = [
+                planar(-10.0 + 10.0 * t, 0.0, 0.0),
+                {
+                    // Constant turn rate w at speed v along an arc starting at (0, 10), heading +x.
+                    let (v, w) = (8.0, 0.3);
+                    let yaw = w * t;
+                    planar(v / w * yaw.sin(), 10.0 + v / w * (1.0 - yaw.cos()), yaw)
+                },
+                planar(2.0 * t + 1.5 * t * t, -8.0, 0.0),
+            ];
+            let mut frame = Vec::new();
+            let mut clusters = Vec::new();
+            let wall: Vec<Point> =
+                box_surface(&mut rng, 800, [40.0, 0.5, 3.0]).iter().map(|p| [p[0] - 20.0, p[1] + 20.0, p[2]]).collect();
+            clusters.push((0..wall.len() as u32).collect());
+            frame.extend(wall);
+            for (b, m) in motions.iter().enumerate() {
+                let start = frame.len() as u32;
+                frame.extend(box_surface(&mut rng, 500, car).iter().map(|p| m.apply(p)));
+                clusters.push((start..frame.len() as u32).collect());
+                s.truth[b].push(*m);
+            }
+            s.frames.push(frame);
+            s.clusters.push(clusters);
+            s.times.push(t);
+        }
+        s
+    }
+
+    fn bodies_of(s: &Scene, params: &BodyParams) -> Vec<MovingBody> {
+        let trees: Vec<KdTree> = s.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
+        find_moving_bodies(&frames, &trees, &clusters, &s.times, params, &mut |_, _| ControlFlow::Continue(()))
+            .expect("never stopped")
+    }
+
+    #[test]
+    fn straight_turning_and_accelerating_boxes_are_one_body_each_and_tracked_within_a_decimetre() {
+        let s = scene(12);
+        let bodies = bodies_of(&s, &BodyParams::default());
+        assert_eq!(bodies.len(), 3, "one body per moving box, none for the wall");
+        for body in &bodies {
+            assert!(body.fits(12));
+            assert!(body.observed.iter().all(|&o| o), "every box is seen in every frame");
+            // Which box: the one whose frame-0 corner the body's frame-0 members surround.
+            let m0 = centroid(&body.members[0]);
+            let b = (0..3)
+                .min_by(|&a, &b| {
+                    let d = |i: usize| {
+                        let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
+                        (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
+                    };
+                    d(a).total_cmp(&d(b))
+                })
+                .unwrap();
+            // Every corner of the box, carried from frame 0 by the body, lands within 0.1 m of
+            // where the truth carries it, at every frame (resampled surfaces: 500 points a frame).
+            for j in 0..12 {
+                let motion = body.poses[j].compose(&body.poses[0].inverse());
+                let truth = s.truth[b][j].compose(&s.truth[b][0].inverse());
+                for corner in [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]] {
+                    let p = s.truth[b][0].apply_f64(corner);
+                    let (got, want) = (motion.apply_f64(p), truth.apply_f64(p));
+                    let err = (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt();
+                    assert!(err < 0.1, "box {b} frame {j}: corner {err:.3} m off");
+                }
+            }
+            // Extent: the car's 4.2 x 1.8 x 1.5 m within the voxel size and sampling.
+            let size: Vec<f32> = (0..3).map(|i| body.extent_max_m[i] - body.extent_min_m[i]).collect();
+            assert!((size[2] - 1.5).abs() < 0.15, "{size:?}");
+            assert!((size[0].max(size[1]) - 4.2).abs() < 0.3, "{size:?}");
+        }
+    }
+
+    #[test]
+    fn a_body_is_one_object_over_the_sequence_and_the_result_is_thread_count_independent() {
+        let s = scene(8);
+        let params = BodyParams::default();
+        let a = bodies_of(&s, &params);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let b = pool.install(|| bodies_of(&s, &params));
+        assert_eq!(a, b);
+        // 8 frames x 3 moving clusters: each on exactly one body.
+        let counts: usize = a.iter().map(|b| b.member_counts.iter().filter(|&&n| n > 0).count()).sum();
+        assert_eq!(counts, 24);
+        let ids: Vec<u32> = a.iter().map(|b| b.id).collect();
+        assert_eq!(ids, vec![0, 1, 2]);
+    }
+
+    #[test]
+    fn a_parked_car_is_no_body() {
+        let mut s = scene(6);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        // Every box parked at its frame-0 place, resampled each frame.
+        for k in 0..6 {
+            let mut frame: Vec<Point> = s.frames[k][..800].to_vec();
+            for b in 0..3 {
+                frame.extend(box_surface(&mut rng, 500, [4.2, 1.8, 1.5]).iter().map(|p| s.truth[b][0].apply(p)));
+            }
+            s.frames[k] = frame;
+        }
+        assert!(bodies_of(&s, &BodyParams::default()).is_empty());
+    }
+
+    #[test]
+    fn the_smooth_motion_fills_unseen_frames_and_replaces_an_outlier_exactly_on_a_quadratic_path() {
+        let times: Vec<f64> = (0..10).map(|k| 0.1 * k as f64).collect();
+        let truth: Vec<Rigid> =
+            times.iter().map(|&t| planar(1.0 + 3.0 * t + 2.0 * t * t, -t * t, 0.2 * t + 0.1 * t * t)).collect();
+        let centre = [0.0, 0.0, 0.0];
+        let mut poses = truth.clone();
+        poses[4].translation[0] += 1.0; // a bad registration
+        let mut observed = vec![true; 10];
+        observed[6] = false; // predicted: the smooth motion fills it in
+        poses[6] = Rigid::identity();
+        smooth_poses(&mut poses, &observed, &times, centre, 0.3);
+        for (j, (p, q)) in poses.iter().zip(&truth).enumerate() {
+            for i in 0..3 {
+                assert!((p.translation[i] - q.translation[i]).abs() < 1e-6, "frame {j}: {p:?} vs {q:?}");
+                for c in 0..3 {
+                    assert!((p.rotation[i][c] - q.rotation[i][c]).abs() < 1e-6, "frame {j}");
+                }
+            }
+        }
+    }
+}
