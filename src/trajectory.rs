@@ -6,9 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::fit::Method;
+use crate::fit::bodies::MovingBody;
 use crate::fit::encoding::encode_points;
 use crate::fit::prepare::FrameReport;
-use crate::fit::bodies::MovingBody;
 use crate::fit::tracks::RigidTrack;
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
@@ -361,36 +361,63 @@ impl FittedModel {
         if self.bodies.is_empty() {
             return;
         }
-        // The members of the frames around u_obs, moved to u_obs along their body.
-        let below = (u_obs.floor() as usize).min(self.time_axis.frames() - 1);
-        let above = (u_obs.ceil() as usize).min(self.time_axis.frames() - 1);
+        let owners = self.body_members(points, u_obs);
+        for (n, body) in self.bodies.iter().enumerate() {
+            let back = pose_at(&body.poses, u_obs).inverse();
+            let motions: Vec<Rigid> = u_times.iter().map(|&u| pose_at(&body.poses, u).compose(&back)).collect();
+            for (i, p) in points.iter().enumerate().filter(|&(i, _)| owners[i] == Some(n)) {
+                for (j, m) in motions.iter().enumerate() {
+                    out[i * u_times.len() + j] = m.apply(p);
+                }
+            }
+        }
+    }
+
+    /// Per point (fit coordinates, observed at fractional frame `u_obs`): the index of the body
+    /// it lies on, if any: within [`TRACK_MEMBER_RADIUS_M`] of the body's member points of the
+    /// frames around `u_obs`, moved to `u_obs` along the body.
+    fn body_members(&self, points: &[Point], u_obs: f64) -> Vec<Option<usize>> {
+        let last = self.time_axis.frames() - 1;
+        let below = (u_obs.floor() as usize).min(last);
+        let above = (u_obs.ceil() as usize).min(last);
         let mut members = Vec::new();
         let mut owner = Vec::new();
-        let mut motions: Vec<Vec<Rigid>> = Vec::with_capacity(self.bodies.len());
         for (n, body) in self.bodies.iter().enumerate() {
             let at_obs = pose_at(&body.poses, u_obs);
-            for frame in [below, above].into_iter().take(if below == above { 1 } else { 2 }) {
+            for frame in if below == above { vec![below] } else { vec![below, above] } {
                 let to_obs = at_obs.compose(&body.poses[frame].inverse());
                 members.extend(body.members[frame].iter().map(|p| to_obs.apply(p)));
                 owner.extend(std::iter::repeat_n(n, body.members[frame].len()));
             }
-            let back = at_obs.inverse();
-            motions.push(u_times.iter().map(|&u| pose_at(&body.poses, u).compose(&back)).collect());
         }
         if members.is_empty() {
-            return;
+            return vec![None; points.len()];
         }
         let tree = KdTree::new(&members);
         let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
-        for (i, p) in points.iter().enumerate() {
-            let Some(hit) = tree.nearest(p) else { continue };
-            if hit.dist2 > max_d2 {
-                continue;
-            }
-            for (j, m) in motions[owner[hit.index]].iter().enumerate() {
-                out[i * u_times.len() + j] = m.apply(p);
-            }
-        }
+        points.iter().map(|p| tree.nearest(p).filter(|h| h.dist2 <= max_d2).map(|h| owner[h.index])).collect()
+    }
+
+    /// Per frame k, the moving body (its [`MovingBody::id`]) each of `frames[k]`'s points (sensor
+    /// coordinates of sweep k) lies on, -1 for none: the `object_id` of the labels.
+    pub fn object_ids(&self, frames: &[Vec<Point>]) -> Vec<Vec<i32>> {
+        frames
+            .iter()
+            .enumerate()
+            .map(|(k, points)| {
+                if self.bodies.is_empty() || k >= self.time_axis.frames() {
+                    return vec![-1; points.len()];
+                }
+                let in_fit: Vec<Point> = match &self.frame_poses {
+                    Some(poses) => points.iter().map(|p| poses[k].apply(p)).collect(),
+                    None => points.clone(),
+                };
+                self.body_members(&in_fit, k as f64)
+                    .into_iter()
+                    .map(|owner| owner.map_or(-1, |n| self.bodies[n].id as i32))
+                    .collect()
+            })
+            .collect()
     }
 
     /// Scene flow of every frame's points to the next frame: entry k has one vector (m) per

@@ -160,7 +160,11 @@ async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
     assert_eq!(response.status(), 200);
     assert_eq!(response.headers()["content-type"], "application/octet-stream");
     let npz = response.bytes().await.unwrap();
-    assert_eq!(zip_names(&npz), vec!["flow_000.npy", "flow_001.npy", "timestamps.npy"]);
+    // No poses: no scene model, so every point's object id is -1, but the arrays are there.
+    assert_eq!(
+        zip_names(&npz),
+        vec!["flow_000.npy", "flow_001.npy", "object_000.npy", "object_001.npy", "object_002.npy", "timestamps.npy"]
+    );
     let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&npz[..])).unwrap();
     let mut flow = Vec::new();
     archive.by_name("flow_001.npy").unwrap().read_to_end(&mut flow).unwrap();
@@ -178,7 +182,7 @@ async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
         // Arrow IPC files start and end with the magic "ARROW1".
         assert!(feather.starts_with(b"ARROW1") && feather.ends_with(b"ARROW1"));
         let text = String::from_utf8_lossy(&feather);
-        for column in ["flow_tx_m", "flow_ty_m", "flow_tz_m", "is_valid"] {
+        for column in ["flow_tx_m", "flow_ty_m", "flow_tz_m", "is_valid", "object_id"] {
             assert!(text.contains(column), "{column} missing from the feather schema");
         }
     } else {
@@ -195,6 +199,67 @@ async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
     assert_eq!(status, 204);
     assert_eq!(s.get("/v1/sequences/{id}", &format!("/v1/sequences/{id}")).await.0, 404);
     assert_eq!(s.get("/v1/jobs/{id}", &format!("/v1/jobs/{job}")).await.0, 404);
+}
+
+#[tokio::test]
+async fn a_sequence_with_poses_lists_its_moving_box_as_one_object_and_labels_carry_its_id() {
+    let s = TestServer::start().await;
+    let t = 6;
+    let f = frames(t, 300);
+    let identity = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+    let timestamps: Vec<f64> = (0..t).map(|k| 0.1 * k as f64).collect();
+    let (status, seq) = s
+        .post_json(
+            "/v1/sequences",
+            "/v1/sequences",
+            &json!({ "frames": f, "timestamps": timestamps, "poses": vec![identity; t] }),
+        )
+        .await;
+    assert_eq!(status, 201, "{seq}");
+    let (status, job) = s
+        .post_json(
+            "/v1/jobs",
+            "/v1/jobs",
+            &json!({ "sequence_id": seq["id"], "method": "mbnt", "params": common::tiny_params() }),
+        )
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let job = job["id"].as_str().unwrap().to_string();
+    s.wait_status(&job, "succeeded").await;
+    let (status, objects) = s.get("/v1/jobs/{id}/objects", &format!("/v1/jobs/{job}/objects")).await;
+    assert_eq!(status, 200, "{objects}");
+    assert_eq!(objects["moving_bodies"], true);
+    let list = objects["objects"].as_array().unwrap();
+    // The box (odd points) is one object over all six frames; the wall is none.
+    assert_eq!(list.len(), 1, "{objects}");
+    let body = &list[0];
+    assert_eq!(body["frames_seen"], json!([0, 1, 2, 3, 4, 5]));
+    assert_eq!(body["points_per_frame"], json!([150, 150, 150, 150, 150, 150]));
+    // Its pose moves 0.5 m along y per frame, to within 0.1 m: the box is a flat sheet 0.45 m
+    // wide whose motion lies in its own plane (only its edges fix it), registered to a model
+    // thinned to 0.1 m cubes. The unit tests of fit::bodies hold real boxes to 0.1 m.
+    let y = |k: usize| body["poses"][k][7].as_f64().unwrap();
+    for k in 1..t {
+        assert!((y(k) - y(k - 1) - 0.5).abs() < 0.1, "frame {k}: {} m", y(k) - y(k - 1));
+    }
+    assert!((y(t - 1) - y(0) - 2.5).abs() < 0.1, "{} m over the sequence", y(t - 1) - y(0));
+    // Labels: one object array per frame, the box's points with its id, the wall's -1.
+    let response = s.request(Method::GET, &format!("/v1/jobs/{job}/labels?format=npz")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    let npz = response.bytes().await.unwrap();
+    let names = zip_names(&npz);
+    assert!(names.contains(&"object_005.npy".to_string()), "{names:?}");
+    let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&npz[..])).unwrap();
+    let mut ids = Vec::new();
+    archive.by_name("object_003.npy").unwrap().read_to_end(&mut ids).unwrap();
+    let header_len = u16::from_le_bytes([ids[8], ids[9]]) as usize;
+    let values: Vec<i32> =
+        ids[10 + header_len..].chunks_exact(4).map(|b| i32::from_le_bytes(b.try_into().unwrap())).collect();
+    assert_eq!(values.len(), 300);
+    let id = body["id"].as_i64().unwrap() as i32;
+    for (i, v) in values.iter().enumerate() {
+        assert_eq!(*v, if i % 2 == 1 { id } else { -1 }, "point {i}");
+    }
 }
 
 #[tokio::test]

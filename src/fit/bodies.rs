@@ -163,8 +163,9 @@ pub fn find_moving_bodies(
     }
     // Largest seeds first: they give the body model the most of its shape to start from.
     seeds.sort_by_key(|&(k, c, _, _)| (std::cmp::Reverse(clusters[k][c].len()), k, c));
-    let boxes: Vec<Vec<Aabb>> =
-        (0..t).map(|k| clusters[k].iter().map(|c| Aabb::of(c.iter().map(|&i| &frames[k][i as usize]))).collect()).collect();
+    let boxes: Vec<Vec<Aabb>> = (0..t)
+        .map(|k| clusters[k].iter().map(|c| Aabb::of(c.iter().map(|&i| &frames[k][i as usize]))).collect())
+        .collect();
     let mut taken: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
     // Per frame and point: its cluster, or -1.
     let labels: Vec<Vec<i32>> = (0..t)
@@ -256,9 +257,6 @@ struct Tracked {
     body: MovingBody,
     /// (frame, cluster) pairs on the body.
     clusters: Vec<(usize, usize)>,
-    /// How far its centre moved over its observed frames (m, the largest distance from its
-    /// position in the seed frame).
-    travel_m: f64,
     /// Whether it is moving, judged from all its observed frames.
     moving: bool,
 }
@@ -383,8 +381,7 @@ fn track_body(
     // The body frame: origin at the model's centre, x along the direction of travel.
     let heading = travel_heading(&poses, k, centre);
     let (s, co) = heading.sin_cos();
-    let body_to_seed =
-        Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: centre };
+    let body_to_seed = Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: centre };
     let seed_to_body = body_to_seed.inverse();
     let mut extent_min_m = [f32::INFINITY; 3];
     let mut extent_max_m = [f32::NEG_INFINITY; 3];
@@ -396,9 +393,8 @@ fn track_body(
         }
     }
     let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
-    let members: Vec<Vec<Point>> = (0..t)
-        .map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m))
-        .collect();
+    let members: Vec<Vec<Point>> =
+        (0..t).map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m)).collect();
     let clusters_on_body = (0..t).flat_map(|j| on_body[j].clusters.iter().map(move |&ci| (j, ci))).collect();
     let body = MovingBody {
         id: 0,
@@ -416,7 +412,7 @@ fn track_body(
         && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
         && 2 * clear >= tested
         && travel_m >= params.min_travel_m;
-    Tracked { body, clusters: clusters_on_body, travel_m, moving }
+    Tracked { body, clusters: clusters_on_body, moving }
 }
 
 /// A frame's points on a body: whole clusters, and loose points of other clusters or of none.
@@ -469,8 +465,7 @@ fn associate(
     // points near the body may join, as loose points.
     let max_diagonal_m = posed_box.diagonal_m() + MAX_GROWTH_M;
     for (ci, cluster) in clusters[j].iter().enumerate() {
-        if taken[j][ci] || !boxes[j][ci].overlaps(&posed_box, radius_m) || boxes[j][ci].diagonal_m() > max_diagonal_m
-        {
+        if taken[j][ci] || !boxes[j][ci].overlaps(&posed_box, radius_m) || boxes[j][ci].diagonal_m() > max_diagonal_m {
             continue;
         }
         let sample = cluster_subsample(frames[j], cluster, 256);

@@ -4,13 +4,13 @@
 //! The service and the CLI drive this through [`fit_sequence`], a plain blocking call that
 //! reports progress through a callback which may also cancel between iterations.
 
+pub mod bodies;
 pub mod encoding;
 pub mod nsfp;
 pub mod ntp;
 mod params;
 pub mod prepare;
 mod rigidity;
-pub mod bodies;
 pub mod tracks;
 
 pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};

@@ -88,7 +88,13 @@ pub(crate) struct DistanceScratch {
 
 /// Mean distance (m) from `src` moved by `motion` to the nearest point of `tree`, each distance
 /// capped at `cap_m` so that a few stray points do not dominate.
-pub(crate) fn mean_distance_m(src: &[Point], motion: &Rigid, tree: &KdTree, cap_m: f32, scratch: &mut DistanceScratch) -> f64 {
+pub(crate) fn mean_distance_m(
+    src: &[Point],
+    motion: &Rigid,
+    tree: &KdTree,
+    cap_m: f32,
+    scratch: &mut DistanceScratch,
+) -> f64 {
     scratch.moved.clear();
     scratch.moved.extend(src.iter().map(|p| motion.apply(p)));
     scratch.hits.resize(src.len(), Nearest { index: 0, dist2: 0.0 });

@@ -402,6 +402,93 @@ pub async fn query(
     Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], json).into_response())
 }
 
+/// One moving body as `GET /v1/jobs/{id}/objects` lists it.
+#[derive(Debug, Serialize)]
+struct ObjectView {
+    id: u32,
+    frames_seen: Vec<usize>,
+    points_per_frame: Vec<usize>,
+    /// Per frame, body-to-world (row-major 4 x 4; world: frame 0's sensor coordinates).
+    poses: Vec<[f64; 16]>,
+    /// Per frame, body-to-sensor of that frame's sweep (row-major 4 x 4).
+    poses_sensor: Vec<[f64; 16]>,
+    extent: ExtentView,
+}
+
+/// A body's box in its own coordinates (origin at its centre, x along its travel, z up).
+#[derive(Debug, Serialize)]
+struct ExtentView {
+    min_m: [f32; 3],
+    max_m: [f32; 3],
+    size_m: [f32; 3],
+}
+
+/// The answer of `GET /v1/jobs/{id}/objects`.
+#[derive(Debug, Serialize)]
+struct ObjectsView {
+    job_id: String,
+    frames: usize,
+    times: Vec<f64>,
+    /// Whether the model is a scene model with moving bodies (`moving_bodies` and poses).
+    moving_bodies: bool,
+    objects: Vec<ObjectView>,
+}
+
+fn matrix(r: &crate::geometry::rigid::Rigid) -> [f64; 16] {
+    let (m, t) = (&r.rotation, &r.translation);
+    [
+        m[0][0], m[0][1], m[0][2], t[0], m[1][0], m[1][1], m[1][2], t[1], m[2][0], m[2][1], m[2][2], t[2], 0.0, 0.0,
+        0.0, 1.0,
+    ]
+}
+
+/// `GET /v1/jobs/{id}/objects`: the moving bodies of a succeeded job's scene model, each one
+/// object over the sequence with its pose at every frame time, its extent and its points per
+/// frame.
+pub async fn objects(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let job = load_job(&state, &id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::Conflict(format!(
+            "the job is {}; objects exist only for a succeeded job",
+            job.status.as_str()
+        )));
+    }
+    let model = state.model(job.id).await?;
+    let axis = model.time_axis();
+    let identity = crate::geometry::rigid::Rigid::identity();
+    let view = ObjectsView {
+        job_id: job.id.to_string(),
+        frames: axis.frames(),
+        times: (0..axis.frames()).map(|k| axis.frame_time(k)).collect(),
+        moving_bodies: job.params.moving_bodies && model.frame_poses().is_some(),
+        objects: model
+            .bodies()
+            .iter()
+            .map(|b| ObjectView {
+                id: b.id,
+                frames_seen: b.frames_seen(),
+                points_per_frame: b.member_counts.clone(),
+                poses: b.poses.iter().map(matrix).collect(),
+                poses_sensor: b
+                    .poses
+                    .iter()
+                    .enumerate()
+                    .map(|(k, pose)| {
+                        let to_fit = model.frame_poses().map_or(&identity, |p| &p[k]);
+                        matrix(&to_fit.inverse().compose(pose))
+                    })
+                    .collect(),
+                extent: ExtentView {
+                    min_m: b.extent_min_m,
+                    max_m: b.extent_max_m,
+                    size_m: std::array::from_fn(|c| b.extent_max_m[c] - b.extent_min_m[c]),
+                },
+            })
+            .collect(),
+    };
+    Ok(Json(view).into_response())
+}
+
 /// Query string of `GET /v1/jobs/{id}/labels`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -441,6 +528,7 @@ pub async fn labels(
             .ok_or_else(|| ApiError::Conflict("the job's sequence has been deleted".into()))?;
         let frames = (0..record.frames()).map(|k| store.read_frame(record.id, k)).collect::<Result<Vec<_>, _>>()?;
         let flows = model.scene_flow(&frames);
+        let object_ids = model.object_ids(&frames);
         drop(frames);
         let path = tmp_dir.join(format!("{}.labels", Uuid::new_v4().simple()));
         let file = std::fs::OpenOptions::new()
@@ -455,9 +543,9 @@ pub async fn labels(
         let written = if as_npz {
             let axis = model.time_axis();
             let timestamps: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
-            crate::io::labels::write_labels_npz(w, &flows, &timestamps)
+            crate::io::labels::write_labels_npz(w, &flows, &timestamps, &object_ids)
         } else {
-            write_av2(w, &flows)
+            write_av2(w, &flows, &object_ids)
         };
         let mut file = written
             .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing labels: {e}")))?
@@ -495,11 +583,19 @@ pub async fn labels(
 }
 
 #[cfg(feature = "av2")]
-fn write_av2<W: std::io::Write + std::io::Seek>(w: W, flows: &[Vec<Point>]) -> Result<W, crate::io::WriteError> {
-    crate::io::labels::write_labels_av2_zip(w, flows, None)
+fn write_av2<W: std::io::Write + std::io::Seek>(
+    w: W,
+    flows: &[Vec<Point>],
+    object_ids: &[Vec<i32>],
+) -> Result<W, crate::io::WriteError> {
+    crate::io::labels::write_labels_av2_zip(w, flows, None, Some(object_ids))
 }
 
 #[cfg(not(feature = "av2"))]
-fn write_av2<W: std::io::Write + std::io::Seek>(_: W, _: &[Vec<Point>]) -> Result<W, crate::io::WriteError> {
+fn write_av2<W: std::io::Write + std::io::Seek>(
+    _: W,
+    _: &[Vec<Point>],
+    _: &[Vec<i32>],
+) -> Result<W, crate::io::WriteError> {
     Err(crate::io::WriteError::Io(std::io::Error::other("built without the av2 feature")))
 }

@@ -12,10 +12,21 @@ use crate::geometry::Point;
 /// `timestamps` (float64, shape (T,), seconds), each as given (`timestamps_s` is typically one
 /// per frame of the sequence, so one more than the pair-wise flows). Names have at least three
 /// digits, more when there are over 1000 flows.
-pub fn write_labels_npz<W: Write + Seek>(w: W, flows: &[Vec<Point>], timestamps_s: &[f64]) -> Result<W, WriteError> {
+///
+/// `object_ids` (one array per frame, possibly none at all) become `object_000`, ... (int32,
+/// shape (N_k,)): the moving body each point of frame k lies on, -1 for none.
+pub fn write_labels_npz<W: Write + Seek>(
+    w: W,
+    flows: &[Vec<Point>],
+    timestamps_s: &[f64],
+    object_ids: &[Vec<i32>],
+) -> Result<W, WriteError> {
     let mut npz = NpzWriter::new(w);
     for (k, flow) in flows.iter().enumerate() {
         npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+    }
+    for (k, ids) in object_ids.iter().enumerate() {
+        npz.add_i32(&format!("object_{k:03}"), &[ids.len()], ids)?;
     }
     npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
     npz.finish()
@@ -23,23 +34,43 @@ pub fn write_labels_npz<W: Write + Seek>(w: W, flows: &[Vec<Point>], timestamps_
 
 /// Writes one Feather v2 (uncompressed Arrow IPC file) per frame into a zip: `000000.feather`,
 /// `000001.feather`, ..., each with columns `flow_tx_m`, `flow_ty_m`, `flow_tz_m` (float32,
-/// metres) and `is_valid` (bool; all true when `valid` is `None`), one row per point of frame
-/// k in its point order. This is the per-frame flow layout ZeroFlow / SceneFlowZoo read for
-/// Argoverse 2.
+/// metres), `is_valid` (bool; all true when `valid` is `None`) and `object_id` (int32: the
+/// moving body the point lies on, -1 for none; all -1 when `object_ids` is `None`), one row per
+/// point of frame k in its point order. This is the per-frame flow layout ZeroFlow /
+/// SceneFlowZoo read for Argoverse 2, plus the object column.
 ///
-/// Errors: `valid` with a different number of frames, or of points in a frame, than `flows`.
+/// Errors: `valid` or `object_ids` with fewer frames, or other numbers of points in a frame,
+/// than `flows`.
 #[cfg(feature = "av2")]
 pub fn write_labels_av2_zip<W: Write + Seek>(
     w: W,
     flows: &[Vec<Point>],
     valid: Option<&[Vec<bool>]>,
+    object_ids: Option<&[Vec<i32>]>,
 ) -> Result<W, WriteError> {
     use std::sync::Arc;
 
-    use arrow_array::{ArrayRef, BooleanArray, Float32Array, RecordBatch};
+    use arrow_array::{ArrayRef, BooleanArray, Float32Array, Int32Array, RecordBatch};
     use arrow_schema::{DataType, Field, Schema};
     use zip::write::SimpleFileOptions;
 
+    if let Some(ids) = object_ids {
+        // One id array per frame: the last frame (no flow) may have one too.
+        if ids.len() < flows.len() {
+            return Err(WriteError::Inconsistent(format!(
+                "{} object id arrays for {} flow frames",
+                ids.len(),
+                flows.len()
+            )));
+        }
+        if let Some(k) = (0..flows.len()).find(|&k| ids[k].len() != flows[k].len()) {
+            return Err(WriteError::Inconsistent(format!(
+                "frame {k}: {} object ids for {} points",
+                ids[k].len(),
+                flows[k].len()
+            )));
+        }
+    }
     if let Some(v) = valid {
         if v.len() != flows.len() {
             return Err(WriteError::Inconsistent(format!(
@@ -61,6 +92,7 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
         Field::new("flow_ty_m", DataType::Float32, false),
         Field::new("flow_tz_m", DataType::Float32, false),
         Field::new("is_valid", DataType::Boolean, false),
+        Field::new("object_id", DataType::Int32, false),
     ]));
     let mut zip = zip::ZipWriter::new(w);
     let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
@@ -72,9 +104,13 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
             Some(v) => v[k].iter().map(|&b| Some(b)).collect(),
             None => std::iter::repeat_n(Some(true), flow.len()).collect(),
         };
+        let object_id: Int32Array = match object_ids {
+            Some(ids) => Int32Array::from(ids[k].clone()),
+            None => Int32Array::from(vec![-1; flow.len()]),
+        };
         let batch = RecordBatch::try_new(
             schema.clone(),
-            vec![column(0), column(1), column(2), Arc::new(is_valid) as ArrayRef],
+            vec![column(0), column(1), column(2), Arc::new(is_valid) as ArrayRef, Arc::new(object_id) as ArrayRef],
         )?;
         buf.clear();
         let mut writer = arrow_ipc::writer::FileWriter::try_new(&mut buf, &schema)?;

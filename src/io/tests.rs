@@ -754,22 +754,39 @@ fn python_zipfile_and_literal_eval_read_the_npz() {
 fn labels_npz_holds_one_flow_per_pair_and_the_timestamps() {
     let flows = vec![sample_points(), vec![], vec![[0.5, -0.5, 0.25]]];
     let times = [0.0, 0.1, 0.2, 0.3];
-    let bytes = labels::write_labels_npz(Cursor::new(Vec::new()), &flows, &times).unwrap().into_inner();
+    let ids = vec![vec![-1, 0, 0, -1, 3], vec![], vec![2], vec![-1, -1]];
+    let bytes = labels::write_labels_npz(Cursor::new(Vec::new()), &flows, &times, &ids).unwrap().into_inner();
     let entries = unzip(&bytes);
     let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
-    assert_eq!(names, ["flow_000.npy", "flow_001.npy", "flow_002.npy", "timestamps.npy"]);
+    assert_eq!(
+        names,
+        [
+            "flow_000.npy",
+            "flow_001.npy",
+            "flow_002.npy",
+            "object_000.npy",
+            "object_001.npy",
+            "object_002.npy",
+            "object_003.npy",
+            "timestamps.npy"
+        ]
+    );
+    for (k, frame_ids) in ids.iter().enumerate() {
+        let arr = npy::read_npy(&entries[3 + k].1).unwrap();
+        assert_eq!(arr, NpyArray { shape: vec![frame_ids.len()], data: NpyData::I32(frame_ids.clone()) });
+    }
     for (k, flow) in flows.iter().enumerate() {
         let arr = npy::read_npy(&entries[k].1).unwrap();
         assert_eq!(arr, NpyArray { shape: vec![flow.len(), 3], data: NpyData::F32(flow.as_flattened().to_vec()) });
         // A flow file is a valid point file as well.
         assert_eq!(&read_points(&entries[k].1, None).unwrap(), flow);
     }
-    assert_eq!(npy::read_npy(&entries[3].1).unwrap().data, NpyData::F64(times.to_vec()));
+    assert_eq!(npy::read_npy(&entries[7].1).unwrap().data, NpyData::F64(times.to_vec()));
 }
 
 #[cfg(feature = "av2")]
 mod av2 {
-    use arrow_array::{Array, BooleanArray, Float32Array};
+    use arrow_array::{Array, BooleanArray, Float32Array, Int32Array};
     use arrow_schema::DataType;
 
     use super::*;
@@ -785,7 +802,10 @@ mod av2 {
     fn av2_zip_holds_one_feather_per_frame_with_flow_and_validity() {
         let flows = vec![sample_points(), vec![], vec![[0.5, -0.5, 0.25], [1.0, 2.0, 3.0]]];
         let valid = vec![vec![true, false, true, true, false], vec![], vec![false, true]];
-        let bytes = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&valid)).unwrap().into_inner();
+        let ids = vec![vec![-1, 4, 4, -1, 0], vec![], vec![7, -1], vec![1]];
+        let bytes = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&valid), Some(&ids))
+            .unwrap()
+            .into_inner();
         let entries = unzip(&bytes);
         let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
         assert_eq!(names, ["000000.feather", "000001.feather", "000002.feather"]);
@@ -802,7 +822,8 @@ mod av2 {
                     ("flow_tx_m", &DataType::Float32),
                     ("flow_ty_m", &DataType::Float32),
                     ("flow_tz_m", &DataType::Float32),
-                    ("is_valid", &DataType::Boolean)
+                    ("is_valid", &DataType::Boolean),
+                    ("object_id", &DataType::Int32)
                 ]
             );
             assert_eq!(batch.num_rows(), flows[k].len());
@@ -814,27 +835,34 @@ mod av2 {
             }
             let v = batch.column(3).as_any().downcast_ref::<BooleanArray>().unwrap();
             assert_eq!(v.iter().map(|b| b.unwrap()).collect::<Vec<_>>(), valid[k]);
+            let o = batch.column(4).as_any().downcast_ref::<Int32Array>().unwrap();
+            assert_eq!(o.values().to_vec(), ids[k]);
         }
     }
 
     #[test]
     fn av2_zip_without_masks_marks_every_point_valid() {
         let flows = vec![sample_points()];
-        let bytes = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, None).unwrap().into_inner();
+        let bytes = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, None, None).unwrap().into_inner();
         let batch = read_feather(&unzip(&bytes)[0].1);
         let v = batch.column(3).as_any().downcast_ref::<BooleanArray>().unwrap();
         assert_eq!(v.true_count(), 5);
+        let o = batch.column(4).as_any().downcast_ref::<Int32Array>().unwrap();
+        assert!(o.values().iter().all(|&id| id == -1), "no objects: every point -1");
     }
 
     #[test]
     fn av2_zip_rejects_masks_that_do_not_match_the_flows() {
         let flows = vec![sample_points(), sample_points()];
         let one = vec![vec![true; 5]];
-        let err = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&one)).unwrap_err();
+        let err = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&one), None).unwrap_err();
         assert_eq!(err.to_string(), "inconsistent input: 1 validity masks for 2 flow frames");
         let short = vec![vec![true; 5], vec![true; 4]];
-        let err = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&short)).unwrap_err();
+        let err = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, Some(&short), None).unwrap_err();
         assert_eq!(err.to_string(), "inconsistent input: frame 1: validity mask has 4 entries for 5 points");
+        let ids = vec![vec![-1; 5], vec![-1; 3]];
+        let err = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, None, Some(&ids)).unwrap_err();
+        assert_eq!(err.to_string(), "inconsistent input: frame 1: 3 object ids for 5 points");
     }
 }
 
