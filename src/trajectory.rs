@@ -130,6 +130,10 @@ pub struct FitReport {
     /// Moving bodies of the scene model (`moving_bodies`).
     #[serde(default)]
     pub moving_bodies: usize,
+    /// Points of the scene model the network answers, summed over frames (the rest of the
+    /// points on no body follow the still world).
+    #[serde(default)]
+    pub free_points: usize,
 }
 
 /// A fitted motion model of one sequence.
@@ -148,8 +152,12 @@ pub struct FittedModel {
     /// The scene model's moving bodies (`moving_bodies`).
     bodies: Vec<MovingBody>,
     /// Whether the model is a scene model: points on no body follow the still world (the poses)
-    /// instead of the network.
+    /// instead of the network, except the network's free points.
     still_world: bool,
+    /// Per frame (fit coordinates): points whose motion the network explains clearly better than
+    /// the still world (`true`), and the still points around them (`false`), so that a query
+    /// point takes the kind of its nearest neighbour. Empty without a still world.
+    free_points: Vec<Vec<(Point, bool)>>,
 }
 
 /// A query point within this distance (m) of a tracked cluster's points, at the query's time,
@@ -179,6 +187,7 @@ impl FittedModel {
             tracks: Vec::new(),
             bodies: Vec::new(),
             still_world: false,
+            free_points: Vec::new(),
         }
     }
 
@@ -200,6 +209,7 @@ impl FittedModel {
             tracks: Vec::new(),
             bodies: Vec::new(),
             still_world: false,
+            free_points: Vec::new(),
         }
     }
 
@@ -238,6 +248,34 @@ impl FittedModel {
         self
     }
 
+    /// Sets the network's free points of a scene model (see [`FittedModel::network_positions`]):
+    /// per frame, points (fit coordinates) the network answers (`true`) and still points near
+    /// them (`false`).
+    pub(crate) fn with_free_points(mut self, free_points: Vec<Vec<(Point, bool)>>) -> Self {
+        if self.still_world && free_points.len() == self.time_axis.frames() {
+            self.report.free_points = free_points.iter().map(|f| f.iter().filter(|(_, free)| *free).count()).sum();
+            self.free_points = free_points;
+        }
+        self
+    }
+
+    /// The network's answer for `points` in fit coordinates observed at fractional frame `u_obs`,
+    /// at each of `u_times` (point-major, fit coordinates): what a scene model uses for points
+    /// that neither a body nor the still world explains.
+    pub(crate) fn network_positions(&self, points: &[Point], u_obs: f64, u_times: &[f64]) -> Vec<Point> {
+        let mut out = vec![[0f32; 3]; points.len() * u_times.len()];
+        let frames = self.time_axis.frames();
+        for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * u_times.len().max(1))) {
+            match &self.motion {
+                Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, u_times, out_chunk),
+                Motion::PairFlows { forward, backward } => {
+                    euler_positions(forward, backward, chunk, u_obs, u_times, out_chunk)
+                }
+            }
+        }
+        out
+    }
+
     /// Per frame, the transform from sensor coordinates to the fit's coordinates, when the fit
     /// used poses.
     pub fn frame_poses(&self) -> Option<&[Rigid]> {
@@ -259,7 +297,7 @@ impl FittedModel {
     /// The same model answering from the network alone (for comparisons): no tracks, no bodies,
     /// no still world.
     pub fn without_tracks(&self) -> Self {
-        Self { tracks: Vec::new(), bodies: Vec::new(), still_world: false, ..self.clone() }
+        Self { tracks: Vec::new(), bodies: Vec::new(), still_world: false, free_points: Vec::new(), ..self.clone() }
     }
 
     /// Rigid tracks of moving clusters the model holds.
@@ -296,10 +334,12 @@ impl FittedModel {
         };
         for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * times.len())) {
             if self.still_world {
-                // The still world: in the fit's (ego-motion-free) coordinates nothing moves.
+                // The still world: in the fit's (ego-motion-free) coordinates nothing moves;
+                // the network answers its free points only.
                 for (p, row) in chunk.iter().zip(out_chunk.chunks_mut(times.len())) {
                     row.fill(*p);
                 }
+                self.apply_free_points(chunk, u_obs, &u_times, out_chunk);
                 continue;
             }
             match &self.motion {
@@ -355,6 +395,30 @@ impl FittedModel {
         }
     }
 
+    /// Overwrites the still answers (fit coordinates) of query points nearest to one of the
+    /// network's free points of the frame nearest `u_obs` (within [`TRACK_MEMBER_RADIUS_M`]) with
+    /// the network's answer.
+    fn apply_free_points(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+        let Some(labelled) = self.free_points.get(u_obs.round() as usize) else { return };
+        if !labelled.iter().any(|(_, free)| *free) {
+            return;
+        }
+        let positions: Vec<Point> = labelled.iter().map(|(p, _)| *p).collect();
+        let tree = KdTree::new(&positions);
+        let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
+        let chosen: Vec<usize> = (0..points.len())
+            .filter(|&i| tree.nearest(&points[i]).is_some_and(|h| h.dist2 <= max_d2 && labelled[h.index].1))
+            .collect();
+        if chosen.is_empty() {
+            return;
+        }
+        let query: Vec<Point> = chosen.iter().map(|&i| points[i]).collect();
+        let answers = self.network_positions(&query, u_obs, u_times);
+        for (n, &i) in chosen.iter().enumerate() {
+            out[i * u_times.len()..][..u_times.len()].copy_from_slice(&answers[n * u_times.len()..][..u_times.len()]);
+        }
+    }
+
     /// Overwrites the answers (fit coordinates) of query points that lie on a moving body at
     /// `u_obs` with the body's motion from `u_obs` to each queried time.
     fn apply_bodies(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
@@ -376,7 +440,7 @@ impl FittedModel {
     /// Per point (fit coordinates, observed at fractional frame `u_obs`): the index of the body
     /// it lies on, if any: within [`TRACK_MEMBER_RADIUS_M`] of the body's member points of the
     /// frames around `u_obs`, moved to `u_obs` along the body.
-    fn body_members(&self, points: &[Point], u_obs: f64) -> Vec<Option<usize>> {
+    pub(crate) fn body_members(&self, points: &[Point], u_obs: f64) -> Vec<Option<usize>> {
         let last = self.time_axis.frames() - 1;
         let below = (u_obs.floor() as usize).min(last);
         let above = (u_obs.ceil() as usize).min(last);
@@ -451,6 +515,7 @@ impl FittedModel {
             tracks: self.tracks.clone(),
             bodies: self.bodies.clone(),
             still_world: self.still_world,
+            free_points: self.free_points.clone(),
         };
         let header = serde_json::to_vec(&header).expect("a header always serialises");
         let mut out = MODEL_MAGIC.to_vec();
@@ -509,6 +574,9 @@ impl FittedModel {
         if header.bodies.iter().any(|b| !b.fits(frames)) {
             return Err("model header: a moving body does not cover the sequence's frames".into());
         }
+        if !header.free_points.is_empty() && header.free_points.len() != frames {
+            return Err("model header: free points of every frame expected".into());
+        }
         if header.still_world && header.frame_poses.is_none() {
             return Err("model header: a still world needs the frames' poses".into());
         }
@@ -521,6 +589,7 @@ impl FittedModel {
             tracks: header.tracks,
             bodies: header.bodies,
             still_world: header.still_world,
+            free_points: header.free_points,
         })
     }
 }
@@ -545,6 +614,9 @@ struct Header {
     /// See [`FittedModel::still_world`]; absent (false) in earlier files.
     #[serde(default)]
     still_world: bool,
+    /// See [`FittedModel::free_points`]; absent (empty) in earlier files.
+    #[serde(default)]
+    free_points: Vec<Vec<(Point, bool)>>,
 }
 
 /// Trajectory position at fractional frame index `u` from one point's velocity row: the
@@ -738,6 +810,106 @@ mod tests {
         }
         let alone = model.without_tracks().positions(&queries, 1.5, &[3.0]).unwrap();
         assert_eq!(alone[0], queries[0], "without tracks the network answers");
+    }
+
+    /// A 4-frame scene model with identity poses: a network that moves everything 1 m per frame
+    /// along y, a body driving 1 m per frame along x (3 member points per frame), and one free
+    /// point at (20, 0, 0) with a still neighbour at (20.5, 0, 0) in every frame.
+    fn scene_model() -> FittedModel {
+        use rand::SeedableRng;
+        let frames = 4;
+        let mut mlp = Mlp::<f32>::new(
+            &[crate::fit::encoding::input_width(frames), 8, 3 * (frames - 1)],
+            &mut rand_chacha::ChaCha8Rng::seed_from_u64(1),
+        );
+        mlp.zero_output_layer();
+        let params = mlp.parameters_mut();
+        let bias_start = params.len() - 3 * (frames - 1);
+        for (i, b) in params[bias_start..].iter_mut().enumerate() {
+            *b = if i % 3 == 1 { 1.0 } else { 0.0 }; // velocity (0, 1, 0) m per frame
+        }
+        let axis = TimeAxis::new(None, frames);
+        let model = FittedModel::trajectory(
+            Method::Mbnt,
+            axis,
+            FitReport::default(),
+            mlp,
+            Some(vec![Rigid::identity(); frames]),
+        );
+        let shift = |j: usize| Rigid { translation: [j as f64, 0.0, 0.0], ..Rigid::identity() };
+        let body = MovingBody {
+            id: 0,
+            poses: (0..frames).map(shift).collect(),
+            observed: vec![true; frames],
+            members: (0..frames)
+                .map(|j| {
+                    let x = j as f32;
+                    vec![[x, 0.0, 0.0], [x + 1.0, 0.0, 0.0], [x, 1.0, 0.0]]
+                })
+                .collect(),
+            member_counts: vec![3; frames],
+            extent_min_m: [-0.5, -0.5, 0.0],
+            extent_max_m: [0.5, 0.5, 0.0],
+        };
+        model
+            .with_bodies(vec![body])
+            .with_free_points(vec![vec![([20.0, 0.0, 0.0], true), ([20.5, 0.0, 0.0], false)]; frames])
+    }
+
+    #[test]
+    fn a_scene_model_answers_from_bodies_free_points_and_the_still_world() {
+        let model = scene_model();
+        assert_eq!(model.report().moving_bodies, 1);
+        assert_eq!(model.report().free_points, 4);
+        let queries = [[1.2, 0.1, 0.0], [20.1, 0.0, 0.0], [20.55, 0.0, 0.0], [50.0, 50.0, 0.0]];
+        let expected = [
+            [3.2, 0.1, 0.0],   // on the body: 2 m along x from t = 1 to t = 3
+            [20.1, 2.0, 0.0],  // nearest a free point: the network, 2 m along y
+            [20.55, 0.0, 0.0], // nearest the still neighbour: still
+            [50.0, 50.0, 0.0], // nothing near: the still world
+        ];
+        let check = |model: &FittedModel, expected: &[[f32; 3]]| {
+            let at = model.positions(&queries, 1.0, &[3.0]).unwrap();
+            for (got, want) in at.iter().zip(expected) {
+                assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5), "{at:?}");
+            }
+        };
+        check(&model, &expected);
+        // The labels' object ids: frame 2's points on the body (x = 2..3) are object 0.
+        let ids = model.object_ids(&[vec![], vec![], vec![[2.2, 0.0, 0.0], [20.0, 0.0, 0.0]], vec![]]);
+        assert_eq!(ids[2], vec![0, -1]);
+        // The same answers after a round trip through the file format.
+        let back = FittedModel::from_bytes(&model.to_bytes()).unwrap();
+        check(&back, &expected);
+        assert_eq!(back.bodies(), model.bodies());
+        // The network alone moves everything along y.
+        let alone = model.without_tracks().positions(&queries[3..], 1.0, &[3.0]).unwrap();
+        assert_eq!(alone[0], [50.0, 52.0, 0.0]);
+    }
+
+    #[test]
+    fn a_model_file_from_before_the_scene_model_still_loads() {
+        // The previous version's header has no bodies, still world or free points.
+        let model = scene_model();
+        let bytes = model.to_bytes();
+        let rest = &bytes[MODEL_MAGIC.len()..];
+        let len = u64::from_le_bytes(rest[..8].try_into().unwrap()) as usize;
+        let mut header: serde_json::Value = serde_json::from_slice(&rest[8..8 + len]).unwrap();
+        for field in ["bodies", "still_world", "free_points"] {
+            header.as_object_mut().unwrap().remove(field).expect("the current header has the field");
+        }
+        header["report"].as_object_mut().unwrap().remove("moving_bodies");
+        header["report"].as_object_mut().unwrap().remove("free_points");
+        let old_header = serde_json::to_vec(&header).unwrap();
+        let mut old = MODEL_MAGIC.to_vec();
+        old.extend((old_header.len() as u64).to_le_bytes());
+        old.extend(old_header);
+        old.extend(&rest[8 + len..]);
+        let loaded = FittedModel::from_bytes(&old).unwrap();
+        assert!(loaded.bodies().is_empty());
+        // Without the scene model the network answers every point, as models of that version did.
+        let at = loaded.positions(&[[50.0, 50.0, 0.0]], 1.0, &[3.0]).unwrap();
+        assert_eq!(at[0], [50.0, 52.0, 0.0]);
     }
 
     #[test]

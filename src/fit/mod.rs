@@ -207,7 +207,9 @@ pub fn fit_sequence(
             &mut on_step,
         )
         .ok_or(FitError::Cancelled { iteration })?;
-        model.with_bodies(found)
+        let model = model.with_bodies(found);
+        let free = network_free_points(&model, &points, &trees);
+        model.with_free_points(free)
     } else {
         let tracks =
             tracks::track_moving_clusters(&points, &trees, &clusters, &tracks::TrackParams::default(), &mut on_step)
@@ -216,6 +218,67 @@ pub fn fit_sequence(
     };
     model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)
+}
+
+/// A point on no body is *free* (the network answers it instead of the still world) when the
+/// network's positions of it in the neighbouring frames lie this much closer (m, mean capped
+/// nearest-neighbour distance) to those frames' points than its still position does...
+const FREE_MIN_GAIN_M: f64 = 0.1;
+/// ...and at most this share of the still distance.
+const FREE_MAX_SHARE: f64 = 0.5;
+/// Frames on each side compared by the free-point test.
+const FREE_FRAMES_EACH_SIDE: usize = 2;
+/// Still points within this distance (m) of a free point are kept beside it, so that a query
+/// takes the kind of its nearest fitted point.
+const FREE_GUARD_M: f32 = 0.5;
+
+/// The network's part of a scene model (fit coordinates, frames with poses): per frame, the
+/// points on no body whose motion the network explains clearly better than the still world
+/// (`true`) and the still points around them (`false`). Non-rigid and unclustered motion the
+/// bodies miss is what the network is left to answer; everything else follows the poses exactly.
+fn network_free_points(model: &FittedModel, frames: &[&[Point]], trees: &[&KdTree]) -> Vec<Vec<(Point, bool)>> {
+    use rayon::prelude::*;
+    let t = frames.len();
+    let cap_m = 1.0f64;
+    (0..t)
+        .into_par_iter()
+        .map(|k| {
+            let points = frames[k];
+            let owners = model.body_members(points, k as f64);
+            let near: Vec<usize> = (k.saturating_sub(FREE_FRAMES_EACH_SIDE)..(k + FREE_FRAMES_EACH_SIDE + 1).min(t))
+                .filter(|&j| j != k)
+                .collect();
+            let u_times: Vec<f64> = near.iter().map(|&j| j as f64).collect();
+            let moved = model.network_positions(points, k as f64, &u_times);
+            let distance =
+                |j: usize, p: &Point| trees[j].nearest(p).map_or(cap_m, |h| f64::from(h.dist2).sqrt().min(cap_m));
+            let free: Vec<bool> = (0..points.len())
+                .map(|i| {
+                    if owners[i].is_some() {
+                        return false;
+                    }
+                    let (mut still, mut net) = (0.0, 0.0);
+                    for (n, &j) in near.iter().enumerate() {
+                        still += distance(j, &points[i]);
+                        net += distance(j, &moved[i * near.len() + n]);
+                    }
+                    let count = near.len().max(1) as f64;
+                    let (still, net) = (still / count, net / count);
+                    still - net >= FREE_MIN_GAIN_M && net <= FREE_MAX_SHARE * still
+                })
+                .collect();
+            let free_set: Vec<Point> = (0..points.len()).filter(|&i| free[i]).map(|i| points[i]).collect();
+            if free_set.is_empty() {
+                return Vec::new();
+            }
+            let free_tree = KdTree::new(&free_set);
+            let guard2 = FREE_GUARD_M * FREE_GUARD_M;
+            (0..points.len())
+                .filter(|&i| free[i] || free_tree.nearest(&points[i]).is_some_and(|h| h.dist2 <= guard2))
+                .map(|i| (points[i], free[i]))
+                .collect()
+        })
+        .collect()
 }
 
 /// Whether the model works in pose-compensated coordinates (poses given or estimated).
