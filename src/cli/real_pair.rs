@@ -259,6 +259,19 @@ mod tests {
         assert_eq!(baselines(&without, &set).len(), 1);
     }
 
+    #[test]
+    fn a_missing_or_malformed_pair_is_a_clear_error() {
+        let params = FitParams::default();
+        let err = run(Path::new("/nonexistent/pair.npz"), &[], true, &params, None).unwrap_err();
+        assert!(format!("{err:#}").starts_with("loading the pair /nonexistent/pair.npz: reading"), "{err:#}");
+        let dir = tempfile::tempdir().unwrap();
+        let err = run(dir.path(), &[], true, &params, None).unwrap_err();
+        assert!(format!("{err:#}").ends_with("expected exactly one .npz file in the directory, found 0"), "{err:#}");
+        std::fs::write(dir.path().join("pair.npz"), b"not a zip").unwrap();
+        let err = run(dir.path(), &[], true, &params, None).unwrap_err();
+        assert!(format!("{err:#}").contains("not a readable .npz (zip) archive"), "{err:#}");
+    }
+
     /// The protocol reproduces the pair's README: the counts, zero flow and ICP-Flow's figures.
     #[test]
     fn the_baselines_reproduce_the_published_figures_of_the_real_pair() {
