@@ -112,9 +112,10 @@ impl FlowPair {
     /// Parses the archive's bytes; see the module doc for the layout.
     pub fn from_npz(bytes: &[u8]) -> Result<FlowPair, FlowPairError> {
         let mut arrays = read_npz(bytes)?;
-        let (pc1_raw, n1) = rows3(&mut arrays, "pc1")?;
-        let (pc2_raw, n2) = rows3(&mut arrays, "pc2")?;
-        let (flow_raw, _) = rows3_of_len(&mut arrays, "gt_flow_0_1", n1)?;
+        let pc1_raw = rows3(&mut arrays, "pc1", None)?;
+        let pc2_raw = rows3(&mut arrays, "pc2", None)?;
+        let (n1, n2) = (pc1_raw.len(), pc2_raw.len());
+        let flow_raw = rows3(&mut arrays, "gt_flow_0_1", Some(n1))?;
         let classes_raw = vector_f32(&mut arrays, "pc1_classes", n1)?;
         let ground1_raw = vector_f32(&mut arrays, "ground1", n1)?;
         let ground2_raw = vector_f32(&mut arrays, "ground2", n2)?;
@@ -208,18 +209,13 @@ fn rows3_array(name: &'static str, a: NpyArray, rows: Option<usize>) -> Result<V
     Ok(v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
 
-fn rows3(arrays: &mut BTreeMap<String, NpyArray>, name: &'static str) -> Result<(Vec<Point>, usize), FlowPairError> {
-    let points = rows3_array(name, take(arrays, name)?, None)?;
-    let n = points.len();
-    Ok((points, n))
-}
-
-fn rows3_of_len(
+/// The (N, 3) float array `name` as points; `rows` fixes N when given.
+fn rows3(
     arrays: &mut BTreeMap<String, NpyArray>,
     name: &'static str,
-    n: usize,
-) -> Result<(Vec<Point>, usize), FlowPairError> {
-    Ok((rows3_array(name, take(arrays, name)?, Some(n))?, n))
+    rows: Option<usize>,
+) -> Result<Vec<Point>, FlowPairError> {
+    rows3_array(name, take(arrays, name)?, rows)
 }
 
 /// An (n,) float array.
