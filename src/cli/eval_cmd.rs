@@ -45,6 +45,11 @@ pub struct EvalArgs {
     /// Write the machine-readable results here (JSON).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Score a real pair with ground-truth flow instead (an `.npz` in ICP-Flow's demo layout, or
+    /// a directory holding one): dynamic and static points, beside zero flow and the file's own
+    /// estimate. See `cli::real_pair`.
+    #[arg(long, value_name = "DIR_OR_NPZ", conflicts_with_all = ["dir", "seeds", "frames"])]
+    pub real_pair: Option<PathBuf>,
 }
 
 /// Metrics of one method on one sequence.
@@ -562,6 +567,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
         None => FitParams::default(),
     };
+    if let Some(path) = &args.real_pair {
+        return super::real_pair::run(path, &args.methods, args.baselines_only, &params, args.json.as_ref());
+    }
     let mut sequences = Vec::new();
     for dir in &args.dir {
         sequences.push(Labelled::from_dir(dir)?);

@@ -5,16 +5,20 @@
 //! 1. an x-y grid (`cell_m`) collects the points; each occupied cell's candidate height is a low
 //!    quantile of its z (robust to a few stray returns below the road, and picks the road rather
 //!    than a car side when a cell holds both);
-//! 2. the candidates are replaced by their lower slope envelope
+//! 2. candidates far below their neighbourhood are dropped (pits: stray returns under the road,
+//!    mirror images; see `reject_pits`): below three quarters of a 5 x 5 window, or below a neighbour
+//!    with fewer than three cells of a 9 x 9 window at their own height;
+//! 3. the remaining candidates are replaced by their lower slope envelope
 //!    h(c) = min over cells c' of h0(c') + `max_slope` · dist(c, c'),
 //!    computed exactly for the 8-neighbour chamfer metric by two raster sweeps. A cell holding
 //!    only a car roof, a wall or a trunk therefore gets the height of the ground next to it plus at
 //!    most the allowed slope, while a road rising slower than `max_slope` keeps its own height;
-//! 3. a point is ground when z − h(cell) ≤ `tolerance_m` (points below the estimate, i.e. stray
+//! 4. a point is ground when z − h(cell) ≤ `tolerance_m` (points below the estimate, i.e. stray
 //!    returns under the road, count as ground too).
 //!
-//! Cost: O(n) for the grid plus O(cells) for the sweeps; about a few ms for a 120k-point
-//! KITTI frame. Coordinates are the sensor frame of the sweep, z up.
+//! Cost: O(n) for the grid plus O(cells) for the pit test (81 reads per occupied cell) and the
+//! sweeps; 5-15 ms per 124k-point KITTI frame (test profile, busy 2-core host). Coordinates are
+//! the sensor frame of the sweep, z up.
 
 use serde::{Deserialize, Serialize};
 
@@ -276,16 +280,36 @@ impl Grid {
     }
 }
 
-/// Window radius (cells) of the pit test: 5 x 5 cells, 2.5 m at the default cell size.
+/// Window radius (cells) of the majority test: 5 x 5 cells, 2.5 m at the default cell size.
 const PIT_WINDOW: usize = 2;
 
-/// Clears (sets to +inf) the candidate of every cell that lies more than `depth_m` below most of
-/// its neighbourhood: fewer than a quarter of the occupied cells of its 5 x 5 window (itself
-/// included) are at most `depth_m` above it. The envelope spreads every low value over a cone, so
-/// one stray return under the road (KITTI frame 0 has one 10 m down) would otherwise pull the
-/// ground down for tens of metres. A short streak of mirror returns is a minority of its window
-/// as well. A genuine ground cell has ground neighbours at its own height; if it is hemmed in by
-/// objects, clearing it only lets the envelope of the cells beyond take over.
+/// Window radius (cells) of the support test: 9 x 9 cells, 4.5 m at the default cell size, so
+/// that a stray return between two scan rings (about 2.5 m apart at 25 m for an HDL-64E) still
+/// sees the road on both sides.
+const SUPPORT_WINDOW: usize = 4;
+
+/// Fewest cells (itself included) of its window at a cell's own height (within `depth_m`) that
+/// a candidate lying below a neighbour needs to seed the envelope. Stray returns come one to
+/// three at a spot (KITTI 00 frames 0-5: 1-3 returns 5-11 m down, in one or two cells), while
+/// the road is seen by many cells along each scan ring.
+const MIN_SUPPORT_CELLS: usize = 3;
+
+/// Clears (sets to +inf) the candidate of every cell that lies more than `depth_m` below its
+/// neighbourhood, by either of two tests (windows include the cell itself):
+/// - the majority test: fewer than a quarter of the occupied cells of its 5 x 5 window are at
+///   most `depth_m` above it;
+/// - the support test: some occupied cell of its 9 x 9 window is more than `depth_m` above it,
+///   and fewer than [`MIN_SUPPORT_CELLS`] cells of that window are within `depth_m` of its height.
+///
+/// The envelope spreads every low value over a cone, so one stray return under the road (KITTI
+/// frame 0 has one 10 m down) would otherwise pull the ground down for tens of metres. The
+/// majority test alone misses stray returns where the window is sparse: at 25 m an HDL-64E's
+/// ground rings are about 2.5 m apart, so a window may hold only 5-8 occupied cells, and two
+/// adjacent stray cells (KITTI frame 3) are then a quarter of them; the support test catches
+/// those, since a real patch of ground is seen by more than two cells. A genuine ground cell has
+/// ground neighbours at its own height; if it is hemmed in by objects, clearing it only lets the
+/// envelope of the cells beyond take over. A cell alone in its window is kept: nothing says it
+/// is low.
 fn reject_pits(h: &mut [f32], nx: usize, ny: usize, depth_m: f32) {
     let h0 = h.to_vec();
     for y in 0..ny {
@@ -294,18 +318,25 @@ fn reject_pits(h: &mut [f32], nx: usize, ny: usize, depth_m: f32) {
             if here == f32::INFINITY {
                 continue;
             }
+            // Majority counts over the inner window; support counts over the outer one.
             let (mut occupied, mut level) = (0usize, 0usize);
-            for wy in y.saturating_sub(PIT_WINDOW)..(y + PIT_WINDOW + 1).min(ny) {
-                for &v in &h0[wy * nx + x.saturating_sub(PIT_WINDOW)..wy * nx + (x + PIT_WINDOW + 1).min(nx)] {
-                    if v != f32::INFINITY {
+            let (mut higher, mut similar) = (0usize, 0usize);
+            for wy in y.saturating_sub(SUPPORT_WINDOW)..(y + SUPPORT_WINDOW + 1).min(ny) {
+                let (x_lo, x_hi) = (x.saturating_sub(SUPPORT_WINDOW), (x + SUPPORT_WINDOW + 1).min(nx));
+                for (wx, &v) in (x_lo..x_hi).zip(&h0[wy * nx + x_lo..wy * nx + x_hi]) {
+                    if v == f32::INFINITY {
+                        continue;
+                    }
+                    let is_level = v <= here + depth_m;
+                    higher += usize::from(!is_level);
+                    similar += usize::from(is_level && v >= here - depth_m);
+                    if wx.abs_diff(x) <= PIT_WINDOW && wy.abs_diff(y) <= PIT_WINDOW {
                         occupied += 1;
-                        if v <= here + depth_m {
-                            level += 1;
-                        }
+                        level += usize::from(is_level);
                     }
                 }
             }
-            if 4 * level < occupied {
+            if 4 * level < occupied || (higher > 0 && similar < MIN_SUPPORT_CELLS) {
                 h[y * nx + x] = f32::INFINITY;
             }
         }
@@ -481,6 +512,48 @@ mod tests {
         check_scene(&pts, &truth, z);
     }
 
+    /// A flat road z = -1.73 seen as an HDL-64E sees it: rings whose spacing grows with range
+    /// (2.5 m at 25 m), 2000 returns per ring, out to 45 m.
+    fn sparse_ring_road(seed: u64) -> Vec<Point> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut pts = Vec::new();
+        let mut r = 4.0f32;
+        while r < 45.0 {
+            for k in 0..2000 {
+                let a = k as f32 / 2000.0 * std::f32::consts::TAU + rng.random_range(0.0..0.003);
+                pts.push([r * a.cos(), r * a.sin(), -1.73 + rng.random_range(-0.02..0.02)]);
+            }
+            r *= 1.1;
+        }
+        pts
+    }
+
+    #[test]
+    fn a_few_returns_ten_metres_under_the_road_do_not_move_the_ground_estimate() {
+        let road = sparse_ring_road(3);
+        let params = GroundParams::default();
+        let before = height_above_ground(&road, &params).unwrap();
+        // As in KITTI 00 frames 0-5: pairs and triples of returns at one spot about 10 m down,
+        // here between two rings (the rings near 24 m are 2.3 m apart), in adjacent cells.
+        let strays: [Point; 7] = [
+            [23.8, 0.1, -11.7],
+            [23.8, 0.6, -11.7],
+            [-13.6, 4.4, -7.0],
+            [-13.6, 4.4, -7.0],
+            [-13.6, 4.4, -7.0],
+            [2.0, -31.5, -12.0],
+            [2.3, -31.5, -12.1],
+        ];
+        let mut with_strays = road.clone();
+        with_strays.extend(strays);
+        let after = height_above_ground(&with_strays, &params).unwrap();
+        // Every road point keeps its height above the estimate: the strays seed nothing.
+        let moved = before.iter().zip(&after).filter(|(a, b)| (*a - *b).abs() > 1e-6).count();
+        assert_eq!(moved, 0, "{moved} of {} road points moved", road.len());
+        // And the road is ground, within the 2 cm noise of its own estimate.
+        assert!(before.iter().all(|h| h.abs() <= 0.05), "{:?}", before.iter().map(|h| h.abs()).fold(0.0, f32::max));
+    }
+
     #[test]
     fn a_sloped_road_is_ground_and_a_car_on_it_is_not() {
         // An 8 % grade along x and a 2 % camber along y.
@@ -549,6 +622,71 @@ mod tests {
         let bytes = std::fs::read(path).ok()?;
         let floats: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
         Some(floats.chunks_exact(4).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+
+    /// Precision and recall of our ground flags against labelled ones.
+    fn precision_recall(ours: &[bool], labelled: &[bool]) -> (f64, f64) {
+        let both = ours.iter().zip(labelled).filter(|&(&o, &l)| o && l).count() as f64;
+        let n_ours = ours.iter().filter(|&&o| o).count() as f64;
+        let n_labelled = labelled.iter().filter(|&&l| l).count() as f64;
+        (both / n_ours, both / n_labelled)
+    }
+
+    #[test]
+    fn ground_share_is_steady_over_the_six_real_kitti_frames() {
+        let dir = std::path::Path::new("../shared/data/kitti-odometry-00");
+        let frames: Vec<Vec<Point>> = (0..6).filter_map(|k| read_kitti(&dir.join(format!("{k:06}.bin")))).collect();
+        if frames.len() < 6 {
+            eprintln!("skipped: the six frames of {} not found", dir.display());
+            return;
+        }
+        let params = PreprocessParams::default();
+        let mut shares = Vec::new();
+        for (k, pts) in frames.iter().enumerate() {
+            let started = std::time::Instant::now();
+            let (_, report) = preprocess(pts, &params).unwrap();
+            let ms = started.elapsed().as_secs_f64() * 1e3;
+            let share = report.ground as f64 / report.input as f64;
+            eprintln!("KITTI frame {k}: {report:?}, ground share {share:.4}, {ms:.1} ms");
+            shares.push(share);
+        }
+        // Consecutive sweeps 0.1 s apart see the same street: the ground share may not jump.
+        for k in 1..shares.len() {
+            assert!((shares[k] - shares[k - 1]).abs() <= 0.05, "frames {} and {k}: shares {shares:?}", k - 1);
+        }
+        // An HDL-64E street frame has 40-65 % of its returns on the road and sidewalks.
+        assert!(shares.iter().all(|s| (0.4..0.65).contains(s)), "{shares:?}");
+    }
+
+    /// The real pair of `../shared/data/real-pair-icpflow`: the two sweeps, 0.1 s apart, get the
+    /// same share of ground. Precision and recall against the file's `ground1`/`ground2` are
+    /// printed, not asserted: those flags are independent of the points (they flag 16 % of the
+    /// all-NaN padding rows too, and 16 % of the points in every height band), so no geometric
+    /// estimate can match them; docs/benchmarks.md section 9 has the figures.
+    #[test]
+    fn ground_share_is_steady_over_the_real_pair() {
+        let path = std::path::Path::new("../shared/data/real-pair-icpflow/demo.npz");
+        if !path.exists() {
+            eprintln!("skipped: {} not found", path.display());
+            return;
+        }
+        let pair = crate::io::flow_pair::FlowPair::load(path).unwrap();
+        let params = GroundParams::default();
+        let ours1 = ground_mask(&pair.pc1, &params).unwrap();
+        let ours2 = ground_mask(&pair.pc2, &params).unwrap();
+        let share = |m: &[bool]| m.iter().filter(|&&g| g).count() as f64 / m.len() as f64;
+        let ours: Vec<bool> = ours1.iter().chain(&ours2).copied().collect();
+        let labelled: Vec<bool> = pair.ground1.iter().chain(&pair.ground2).copied().collect();
+        let (precision, recall) = precision_recall(&ours, &labelled);
+        eprintln!(
+            "real pair: ground share {:.4} / {:.4}; against the file's flags ({} of {} points): precision {precision:.4}, \
+             recall {recall:.4}",
+            share(&ours1),
+            share(&ours2),
+            labelled.iter().filter(|&&l| l).count(),
+            labelled.len()
+        );
+        assert!((share(&ours1) - share(&ours2)).abs() <= 0.05, "{} vs {}", share(&ours1), share(&ours2));
     }
 
     #[test]

@@ -6,8 +6,10 @@
 //! coordinate are an error (the fitting code needs finite input); an empty cloud is valid.
 //!
 //! Writers produce `.npy` arrays, `.npz` archives ([`npz::NpzWriter`]) and the label exports of
-//! [`labels`].
+//! [`labels`]; [`npz::read_npz`] reads archives back, and [`flow_pair`] loads a real pair with
+//! ground-truth scene flow from one.
 
+pub mod flow_pair;
 pub mod kitti;
 pub mod labels;
 pub mod npy;

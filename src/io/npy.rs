@@ -1,4 +1,4 @@
-//! NumPy `.npy` arrays: a reader for float32, float64, int32, uint8 and bool arrays of any
+//! NumPy `.npy` arrays: a reader for float32, float64, int32, int64, uint8 and bool arrays of any
 //! shape (C or Fortran order, little-endian) and typed writers (format version 1.0, or 2.0 when
 //! the header is too long for 1.0).
 //!
@@ -26,6 +26,8 @@ pub enum DType {
     F64,
     /// `<i4`
     I32,
+    /// `<i8` (NumPy's default integer, e.g. index arrays)
+    I64,
     /// `|u1`
     U8,
     /// `|b1` (one byte, 0 or 1)
@@ -39,6 +41,7 @@ impl DType {
             DType::F32 => "<f4",
             DType::F64 => "<f8",
             DType::I32 => "<i4",
+            DType::I64 => "<i8",
             DType::U8 => "|u1",
             DType::Bool => "|b1",
         }
@@ -48,7 +51,7 @@ impl DType {
     pub fn size(self) -> usize {
         match self {
             DType::F32 | DType::I32 => 4,
-            DType::F64 => 8,
+            DType::F64 | DType::I64 => 8,
             DType::U8 | DType::Bool => 1,
         }
     }
@@ -60,6 +63,7 @@ impl DType {
             "f4" => DType::F32,
             "f8" => DType::F64,
             "i4" => DType::I32,
+            "i8" => DType::I64,
             "u1" => DType::U8,
             "b1" => DType::Bool,
             _ => return Err(unsupported()),
@@ -86,6 +90,8 @@ pub enum NpyData {
     F64(Vec<f64>),
     /// int32
     I32(Vec<i32>),
+    /// int64
+    I64(Vec<i64>),
     /// uint8
     U8(Vec<u8>),
     /// bool
@@ -99,6 +105,7 @@ impl NpyData {
             NpyData::F32(_) => DType::F32,
             NpyData::F64(_) => DType::F64,
             NpyData::I32(_) => DType::I32,
+            NpyData::I64(_) => DType::I64,
             NpyData::U8(_) => DType::U8,
             NpyData::Bool(_) => DType::Bool,
         }
@@ -110,6 +117,7 @@ impl NpyData {
             NpyData::F32(v) => v.len(),
             NpyData::F64(v) => v.len(),
             NpyData::I32(v) => v.len(),
+            NpyData::I64(v) => v.len(),
             NpyData::U8(v) => v.len(),
             NpyData::Bool(v) => v.len(),
         }
@@ -345,7 +353,7 @@ fn decode<T: Copy, const N: usize>(data: &[u8], f: impl Fn([u8; N]) -> T, shape:
     if fortran { fortran_to_c(v, shape) } else { v }
 }
 
-/// Reads an `.npy` array of float32, float64, int32, uint8 or bool, little-endian, C or Fortran
+/// Reads an `.npy` array of float32, float64, int32, int64, uint8 or bool, little-endian, C or Fortran
 /// order. The declared size is checked against the byte length before anything is allocated.
 ///
 /// Errors: bad magic or header, unsupported dtype (big-endian, other types, structured), fewer
@@ -369,6 +377,7 @@ pub fn read_npy(bytes: &[u8]) -> Result<NpyArray, ReadError> {
         DType::F32 => NpyData::F32(decode(d, f32::from_le_bytes, s, fo)),
         DType::F64 => NpyData::F64(decode(d, f64::from_le_bytes, s, fo)),
         DType::I32 => NpyData::I32(decode(d, i32::from_le_bytes, s, fo)),
+        DType::I64 => NpyData::I64(decode(d, i64::from_le_bytes, s, fo)),
         DType::U8 => NpyData::U8(decode(d, |b: [u8; 1]| b[0], s, fo)),
         DType::Bool => {
             if let Some(i) = d.iter().position(|&b| b > 1) {
@@ -423,6 +432,7 @@ macro_rules! npy_element {
 npy_element!(f32, DType::F32);
 npy_element!(f64, DType::F64);
 npy_element!(i32, DType::I32);
+npy_element!(i64, DType::I64);
 npy_element!(u8, DType::U8);
 
 impl NpyElement for bool {

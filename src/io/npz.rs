@@ -1,13 +1,15 @@
 //! `.npz` archives as `numpy.savez_compressed` writes them: a zip of `NAME.npy` entries,
-//! deflate-compressed, each a little-endian C-order array readable by `numpy.load`.
+//! deflate-compressed, each a little-endian C-order array readable by `numpy.load`. The writer
+//! produces them; [`read_npz`] reads them (stored or deflated entries, as `numpy.savez` and
+//! `numpy.savez_compressed` write).
 
-use std::collections::HashSet;
-use std::io::{Seek, Write};
+use std::collections::{BTreeMap, HashSet};
+use std::io::{Cursor, Read, Seek, Write};
 
 use zip::write::SimpleFileOptions;
 
-use super::WriteError;
-use super::npy::{NpyElement, check_shape, npy_header, write_npy_named};
+use super::npy::{NpyArray, NpyElement, check_shape, npy_header, read_npy, write_npy_named};
+use super::{ReadError, WriteError};
 
 /// Above this many bytes an entry needs zip64 records (the classic fields are u32).
 const ZIP64_THRESHOLD_BYTES: u64 = u32::MAX as u64 - 4096;
@@ -63,6 +65,11 @@ impl<W: Write + Seek> NpzWriter<W> {
         self.add(name, shape, data)
     }
 
+    /// Adds an int64 array; see [`NpzWriter::add_f32`].
+    pub fn add_i64(&mut self, name: &str, shape: &[usize], data: &[i64]) -> Result<(), WriteError> {
+        self.add(name, shape, data)
+    }
+
     /// Adds a uint8 array; see [`NpzWriter::add_f32`].
     pub fn add_u8(&mut self, name: &str, shape: &[usize], data: &[u8]) -> Result<(), WriteError> {
         self.add(name, shape, data)
@@ -77,4 +84,84 @@ impl<W: Write + Seek> NpzWriter<W> {
     pub fn finish(self) -> Result<W, WriteError> {
         Ok(self.zip.finish()?)
     }
+}
+
+/// Largest uncompressed entry [`read_npz`] accepts (bytes): a corrupt or hostile size field must
+/// not make it allocate without bound. 4 GiB is ten times the largest array mbnt writes.
+pub const MAX_NPZ_ENTRY_BYTES: u64 = 4 << 30;
+
+/// Why an `.npz` archive could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum NpzReadError {
+    /// The bytes are not a readable zip archive (bad signature, truncated directory, CRC mismatch,
+    /// unsupported compression).
+    #[error("not a readable .npz (zip) archive: {0}")]
+    Zip(#[from] zip::result::ZipError),
+    /// An entry is not a `NAME.npy` file, as NumPy writes them.
+    #[error(".npz entry '{0}' is not a NAME.npy array")]
+    NotNpy(String),
+    /// Two entries have the same array name.
+    #[error(".npz entry '{0}' appears twice")]
+    Duplicate(String),
+    /// An entry declares more than [`MAX_NPZ_ENTRY_BYTES`] uncompressed bytes.
+    #[error(".npz entry '{name}' declares {bytes} bytes, more than the {max} accepted")]
+    TooLarge {
+        /// The array name.
+        name: String,
+        /// Its declared uncompressed size.
+        bytes: u64,
+        /// The limit.
+        max: u64,
+    },
+    /// Reading or decompressing an entry failed.
+    #[error(".npz entry '{name}': {source}")]
+    Io {
+        /// The array name.
+        name: String,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// An entry is not a valid `.npy` array.
+    #[error(".npz array '{name}': {source}")]
+    Array {
+        /// The array name.
+        name: String,
+        /// What is wrong with it.
+        #[source]
+        source: ReadError,
+    },
+}
+
+/// Reads every array of an `.npz` archive, by name (the entry name without `.npy`). Arrays are
+/// read as [`read_npy`] reads them (float32/64, int32/64, uint8, bool). Errors: not a zip, an
+/// entry that is not `NAME.npy` or not a valid array, a repeated name, an oversized entry.
+pub fn read_npz(bytes: &[u8]) -> Result<BTreeMap<String, NpyArray>, NpzReadError> {
+    let mut zip = zip::ZipArchive::new(Cursor::new(bytes))?;
+    let mut out = BTreeMap::new();
+    for i in 0..zip.len() {
+        let mut entry = zip.by_index(i)?;
+        if entry.is_dir() {
+            continue;
+        }
+        let full = entry.name().to_owned();
+        let Some(name) = full.strip_suffix(".npy").filter(|n| !n.is_empty()) else {
+            return Err(NpzReadError::NotNpy(full));
+        };
+        let name = name.to_owned();
+        let declared = entry.size();
+        if declared > MAX_NPZ_ENTRY_BYTES {
+            return Err(NpzReadError::TooLarge { name, bytes: declared, max: MAX_NPZ_ENTRY_BYTES });
+        }
+        // The declared size sizes the buffer; `take` bounds what a lying header can make us read.
+        let mut buf = Vec::with_capacity(declared as usize);
+        if let Err(source) = (&mut entry).take(MAX_NPZ_ENTRY_BYTES + 1).read_to_end(&mut buf) {
+            return Err(NpzReadError::Io { name, source });
+        }
+        let array = read_npy(&buf).map_err(|source| NpzReadError::Array { name: name.clone(), source })?;
+        if out.insert(name.clone(), array).is_some() {
+            return Err(NpzReadError::Duplicate(name));
+        }
+    }
+    Ok(out)
 }

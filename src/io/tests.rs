@@ -658,6 +658,64 @@ fn npz_rejects_bad_shapes_and_names() {
     assert_eq!(unzip(&bytes).len(), 1);
 }
 
+#[test]
+fn read_npz_gives_back_what_the_writer_wrote() {
+    let mut w = NpzWriter::new(Cursor::new(Vec::new()));
+    w.add_f32("points", &[2, 3], &[1.0, 2.0, 3.0, 4.0, f32::NAN, 6.0]).unwrap();
+    w.add_f64("times", &[3], &[0.0, 0.1, 0.2]).unwrap();
+    w.add_i32("labels", &[2, 2], &[-1, 0, 1, 2]).unwrap();
+    w.add_i64("index", &[3], &[0, -5, i64::MAX]).unwrap();
+    w.add_u8("classes", &[4], &[0, 1, 2, 255]).unwrap();
+    w.add_bool("mask", &[2, 1], &[true, false]).unwrap();
+    w.add_f32("empty", &[0, 3], &[]).unwrap();
+    let arrays = npz::read_npz(&w.finish().unwrap().into_inner()).unwrap();
+    let names: Vec<&str> = arrays.keys().map(String::as_str).collect();
+    assert_eq!(names, ["classes", "empty", "index", "labels", "mask", "points", "times"]);
+    // NaN != NaN: compare the f32 payload bit for bit.
+    let NpyData::F32(points) = &arrays["points"].data else { panic!("points: {:?}", arrays["points"]) };
+    let bits: Vec<u32> = points.iter().map(|v| v.to_bits()).collect();
+    let want: Vec<u32> = [1.0f32, 2.0, 3.0, 4.0, f32::NAN, 6.0].iter().map(|v| v.to_bits()).collect();
+    assert_eq!((arrays["points"].shape.as_slice(), bits), ([2usize, 3].as_slice(), want));
+    assert_eq!(arrays["times"], NpyArray { shape: vec![3], data: NpyData::F64(vec![0.0, 0.1, 0.2]) });
+    assert_eq!(arrays["labels"], NpyArray { shape: vec![2, 2], data: NpyData::I32(vec![-1, 0, 1, 2]) });
+    assert_eq!(arrays["index"], NpyArray { shape: vec![3], data: NpyData::I64(vec![0, -5, i64::MAX]) });
+    assert_eq!(arrays["classes"], NpyArray { shape: vec![4], data: NpyData::U8(vec![0, 1, 2, 255]) });
+    assert_eq!(arrays["mask"], NpyArray { shape: vec![2, 1], data: NpyData::Bool(vec![true, false]) });
+    assert_eq!(arrays["empty"], NpyArray { shape: vec![0, 3], data: NpyData::F32(vec![]) });
+}
+
+/// A zip written directly, so the reader sees entries the npz writer would never produce.
+fn zip_of(entries: &[(&str, &[u8])]) -> Vec<u8> {
+    use std::io::Write;
+    let mut z = zip::ZipWriter::new(Cursor::new(Vec::new()));
+    for (name, data) in entries {
+        z.start_file(*name, zip::write::SimpleFileOptions::default()).unwrap();
+        z.write_all(data).unwrap();
+    }
+    z.finish().unwrap().into_inner()
+}
+
+#[test]
+fn read_npz_rejects_malformed_archives_with_a_clear_error() {
+    use npz::{NpzReadError, read_npz};
+    let msg = |r: Result<_, NpzReadError>| r.unwrap_err().to_string();
+    assert!(msg(read_npz(b"not a zip at all")).starts_with("not a readable .npz (zip) archive"));
+    assert!(msg(read_npz(&[])).starts_with("not a readable .npz (zip) archive"));
+    // A truncated archive (its central directory cut off) is not readable either.
+    let mut good = NpzWriter::new(Cursor::new(Vec::new()));
+    good.add_f32("a", &[3], &[1.0, 2.0, 3.0]).unwrap();
+    let good = good.finish().unwrap().into_inner();
+    assert!(msg(read_npz(&good[..good.len() - 10])).starts_with("not a readable .npz (zip) archive"));
+    assert_eq!(msg(read_npz(&zip_of(&[("readme.txt", b"hello")]))), ".npz entry 'readme.txt' is not a NAME.npy array");
+    let e = msg(read_npz(&zip_of(&[("a.npy", b"\x93NUMPY garbage")])));
+    assert_eq!(e, ".npz array 'a': unsupported NPY: format version 32");
+    // One f32 announced as (2,), 4 bytes present: truncated, named.
+    let mut short = npy::npy_header(npy::DType::F32, &[2]);
+    short.extend_from_slice(&1.0f32.to_le_bytes());
+    let e = msg(read_npz(&zip_of(&[("b.npy", &short)])));
+    assert_eq!(e, ".npz array 'b': file truncated: expected 8 bytes of array data, got 4");
+}
+
 /// A Python interpreter that can import numpy: the one on PATH, else the system one (a pyenv
 /// shim may shadow a distribution's numpy).
 fn python_with_numpy() -> Option<&'static str> {
