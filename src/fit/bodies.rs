@@ -211,9 +211,9 @@ impl Aabb {
     fn of<'a>(points: impl Iterator<Item = &'a Point>) -> Aabb {
         let mut b = Aabb { min: [f32::INFINITY; 3], max: [f32::NEG_INFINITY; 3] };
         for p in points {
-            for c in 0..3 {
-                b.min[c] = b.min[c].min(p[c]);
-                b.max[c] = b.max[c].max(p[c]);
+            for (c, &v) in p.iter().enumerate() {
+                b.min[c] = b.min[c].min(v);
+                b.max[c] = b.max[c].max(v);
             }
         }
         b
@@ -551,11 +551,12 @@ fn poly_fit(xs: &[f64], ys: &[f64], degree: usize) -> Vec<f64> {
         if a[col][col].abs() < 1e-12 {
             return vec![0.0; n];
         }
-        for row in 0..n {
+        let pivot_row = a[col].clone();
+        for (row, values) in a.iter_mut().enumerate() {
             if row != col {
-                let f = a[row][col] / a[col][col];
-                for k in col..=n {
-                    a[row][k] -= f * a[col][k];
+                let f = values[col] / pivot_row[col];
+                for (v, p) in values[col..].iter_mut().zip(&pivot_row[col..]) {
+                    *v -= f * p;
                 }
             }
         }

@@ -226,6 +226,12 @@ pub fn fit_sequence(
 const FREE_MIN_GAIN_M: f64 = 0.1;
 /// ...and at most this share of the still distance.
 const FREE_MAX_SHARE: f64 = 0.5;
+/// A point the network moves by at least this much per frame (m; 3 m/s at 10 Hz, ten times the
+/// static slide of section 3) is free too when its network positions are no farther from the
+/// neighbouring sweeps than its still position: a car moving along its own length keeps part of
+/// its still position on its own next sweep (the aperture problem), so the gain test alone misses
+/// it, and in a pair the bodies (which need four frames) cannot carry it.
+const FREE_MIN_TRAVEL_M: f64 = 0.3;
 /// Frames on each side compared by the free-point test.
 const FREE_FRAMES_EACH_SIDE: usize = 2;
 /// Still points within this distance (m) of a free point are kept beside it, so that a query
@@ -264,7 +270,19 @@ fn network_free_points(model: &FittedModel, frames: &[&[Point]], trees: &[&KdTre
                     }
                     let count = near.len().max(1) as f64;
                     let (still, net) = (still / count, net / count);
-                    still - net >= FREE_MIN_GAIN_M && net <= FREE_MAX_SHARE * still
+                    // Mean displacement per frame the network gives the point.
+                    let travel: f64 = near
+                        .iter()
+                        .enumerate()
+                        .map(|(n, &j)| {
+                            let q = &moved[i * near.len() + n];
+                            let d: f64 = (0..3).map(|c| f64::from(q[c] - points[i][c]).powi(2)).sum::<f64>().sqrt();
+                            d / (j.abs_diff(k) as f64)
+                        })
+                        .sum::<f64>()
+                        / count;
+                    (still - net >= FREE_MIN_GAIN_M && net <= FREE_MAX_SHARE * still)
+                        || (travel >= FREE_MIN_TRAVEL_M && net <= still)
                 })
                 .collect();
             let free_set: Vec<Point> = (0..points.len()).filter(|&i| free[i]).map(|i| points[i]).collect();
