@@ -125,6 +125,10 @@ pub struct FitReport {
     /// Wall time of finding and following them (s), included in `fit_seconds`.
     #[serde(default)]
     pub rigid_tracks_seconds: f64,
+    /// The sensor-to-world poses (row-major 4 x 4, frame 0 the identity) the LiDAR odometry
+    /// estimated, when the fit ran it (`odometry` parameter) instead of using given poses.
+    #[serde(default)]
+    pub estimated_poses: Option<Vec<[f64; 16]>>,
 }
 
 /// A fitted motion model of one sequence.
