@@ -120,6 +120,7 @@ pub const ROUTES: &[Route] = &[
     Route { method: "GET", path: "/v1/jobs/{id}/events", handler: || get(jobs::events) },
     Route { method: "POST", path: "/v1/jobs/{id}/query", handler: || post(jobs::query) },
     Route { method: "GET", path: "/v1/jobs/{id}/labels", handler: || get(jobs::labels) },
+    Route { method: "GET", path: "/v1/jobs/{id}/poses", handler: || get(jobs::poses) },
 ];
 
 /// Shared state of the handlers.
