@@ -47,14 +47,11 @@ pub struct OdometryParams {
     pub voxel_m: f32,
     /// Points kept per map voxel (default 20).
     pub max_points_per_voxel: usize,
-    /// Threshold sigma until a frame has moved (m; default 2): correspondences are sought
-    /// within 3 sigma.
+    /// Threshold sigma until a prediction has been off (m; default 2): correspondences are
+    /// sought within 3 sigma.
     pub initial_threshold_m: f64,
-    /// Sigma never drops below this (m; default 0.1): the map's sampling, not the prediction,
-    /// limits how close correspondences are.
-    pub min_threshold_m: f64,
-    /// Frames that moved less than this do not update sigma (m; default 0.1).
-    pub min_motion_m: f64,
+    /// Prediction errors up to this do not update sigma (m; default 0.1): see `threshold`.
+    pub min_prediction_error_m: f64,
     /// The first registration (no motion to predict from yet) starts from the best of a grid
     /// of forward and sideways translations within this distance (m; default 3, 0 = none): a
     /// guess a metre off pairs points with the wrong surfaces, from which ICP does not recover.
@@ -76,8 +73,7 @@ impl Default for OdometryParams {
             voxel_m: 1.0,
             max_points_per_voxel: 20,
             initial_threshold_m: 2.0,
-            min_threshold_m: 0.1,
-            min_motion_m: 0.1,
+            min_prediction_error_m: 0.1,
             initial_search_m: 3.0,
             initial_search_step_m: 0.2,
             max_iterations: 500,
@@ -105,8 +101,7 @@ impl OdometryParams {
         }
         for (name, v) in [
             ("initial_threshold_m", self.initial_threshold_m),
-            ("min_threshold_m", self.min_threshold_m),
-            ("min_motion_m", self.min_motion_m),
+            ("min_prediction_error_m", self.min_prediction_error_m),
             ("initial_search_step_m", self.initial_search_step_m),
             ("convergence_m", self.convergence_m),
         ] {
@@ -257,8 +252,7 @@ pub fn estimate_poses(
     let mut map = VoxelMap::new(params.voxel_m, params.max_points_per_voxel);
     let mut threshold = AdaptiveThreshold::new(
         params.initial_threshold_m,
-        params.min_threshold_m,
-        params.min_motion_m,
+        params.min_prediction_error_m,
         f64::from(params.max_range_m),
     );
     let mut poses: Vec<Isometry3<f64>> = Vec::with_capacity(frames.len());
@@ -321,7 +315,7 @@ pub fn estimate_poses(
         let pose = fit.world_from_sensor;
         let motion = previous.inverse() * pose;
         let deviation = guess.inverse() * pose;
-        threshold.update(&deviation, &motion);
+        threshold.update(&deviation);
         map.add(&transform_points(&pose, &for_map));
         let t = pose.translation.vector;
         map.remove_far([t.x, t.y, t.z], f64::from(params.max_range_m));

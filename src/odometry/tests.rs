@@ -269,7 +269,7 @@ fn a_street_corridor_with_poles_and_parked_cars_does_not_slide() {
 }
 
 #[test]
-#[ignore = "target not met yet: worst step 2.7 cm (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: worst step 2.9 cm (docs/benchmarks.md section 8)"]
 fn a_third_of_the_points_moving_rigidly_does_not_pull_the_estimate() {
     let t = times(12);
     let truth = drive(&t, -2.0, |_| 8.0, |_| 0.0);
