@@ -141,7 +141,7 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let (frame_poses, estimated_poses) = fit_coordinates(sequence, params)?;
+    let FitCoordinates { frame_poses, estimated_poses } = fit_coordinates(sequence, params)?;
     let with_clusters = method.uses_rigidity() || params.rigid_tracks;
     let (frames, frame_reports) =
         prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
@@ -208,7 +208,18 @@ pub fn fit_sequence(
 /// frame 0's, when the sequence has poses or `params.odometry` estimates them (and
 /// `params.use_poses`); `None` (each frame in its own sensor coordinates) otherwise.
 pub fn fit_frame_poses(sequence: &Sequence, params: &ValidFitParams) -> Result<Option<Vec<Rigid>>, FitError> {
-    Ok(fit_coordinates(sequence, params)?.0)
+    Ok(fit_coordinates(sequence, params)?.frame_poses)
+}
+
+/// The coordinates a fit works in, and where they came from.
+#[derive(Debug, Clone, Default)]
+pub struct FitCoordinates {
+    /// Transforms from each frame's sensor coordinates to frame 0's; `None`: each frame in its
+    /// own sensor coordinates.
+    pub frame_poses: Option<Vec<Rigid>>,
+    /// The odometry's sensor-to-world poses (row-major 4 x 4, frame 0 the identity), when it
+    /// estimated them.
+    pub estimated_poses: Option<Vec<[f64; 16]>>,
 }
 
 /// [`fit_frame_poses`], and the odometry's sensor-to-world poses (row-major 4 x 4, frame 0 the
@@ -217,12 +228,9 @@ pub fn fit_frame_poses(sequence: &Sequence, params: &ValidFitParams) -> Result<O
 /// In `auto` mode a sequence the odometry cannot register (e.g. every point within its minimum
 /// range) is fitted in sensor coordinates, as without odometry, with a warning; in `on` mode
 /// that is an error.
-pub fn fit_coordinates(
-    sequence: &Sequence,
-    params: &ValidFitParams,
-) -> Result<(Option<Vec<Rigid>>, Option<Vec<[f64; 16]>>), FitError> {
+pub fn fit_coordinates(sequence: &Sequence, params: &ValidFitParams) -> Result<FitCoordinates, FitError> {
     if !params.use_poses {
-        return Ok((None, None));
+        return Ok(FitCoordinates::default());
     }
     let estimate = match (params.odometry, &sequence.poses) {
         (OdometryMode::On, _) | (OdometryMode::Auto, None) => {
@@ -244,8 +252,10 @@ pub fn fit_coordinates(
         _ => None,
     };
     match estimate.as_deref().or(sequence.poses.as_deref()) {
-        Some(poses) => Ok((Some(poses_relative_to_first(poses)?), estimate)),
-        None => Ok((None, None)),
+        Some(poses) => {
+            Ok(FitCoordinates { frame_poses: Some(poses_relative_to_first(poses)?), estimated_poses: estimate })
+        }
+        None => Ok(FitCoordinates::default()),
     }
 }
 

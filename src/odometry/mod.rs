@@ -6,12 +6,12 @@
 //!    the frame at half the voxel size, registration uses 1.5 times the voxel size;
 //! 2. predict the pose by constant velocity (the last frame-to-frame motion, scaled by the time
 //!    step when timestamps are given);
-//! 2b. the first registration, with no motion to predict from, starts from the best of a grid
-//!    of translations (`initial_search_m`);
-//! 3. point-to-point ICP against the map ([`registration`]): correspondences within three times
+//! 3. the first registration, with no motion to predict from, starts from the best of a grid
+//!    of translations instead (`initial_search_m`);
+//! 4. point-to-point ICP against the map ([`registration`]): correspondences within three times
 //!    the adaptive threshold sigma ([`threshold`]), a Geman-McClure weight of scale sigma / 3, so
 //!    points that move on their own hardly pull once sigma has adapted;
-//! 4. the prediction's error feeds the threshold; the map ([`voxel`]) takes the frame at its new
+//! 5. the prediction's error feeds the threshold; the map ([`voxel`]) takes the frame at its new
 //!    pose and drops voxels beyond `max_range_m`.
 //!
 //! Synchronous and free of I/O. Points stay `f32` until they meet a pose; poses and the normal
