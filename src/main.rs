@@ -1,7 +1,7 @@
 //! The `mbnt` binary: a thin dispatcher over the library's command front ends.
 
 use clap::{Parser, Subcommand};
-use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, serve_cmd, simulate_cmd};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, odometry_cmd, serve_cmd, simulate_cmd};
 
 /// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
 #[derive(Debug, Parser)]
@@ -23,6 +23,8 @@ enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Time a fit phase by phase, faithful and fast modes side by side.
     Bench(bench_cmd::BenchArgs),
+    /// Estimate the sensor poses of frame files (LiDAR odometry), printed as KITTI poses.txt.
+    Odometry(odometry_cmd::OdometryArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -38,5 +40,6 @@ fn main() -> anyhow::Result<()> {
         Command::Simulate(args) => simulate_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
         Command::Bench(args) => bench_cmd::run(args),
+        Command::Odometry(args) => odometry_cmd::run(args),
     }
 }

@@ -134,6 +134,10 @@ pub struct FitReport {
     /// points on no body follow the still world).
     #[serde(default)]
     pub free_points: usize,
+    /// The sensor-to-world poses (row-major 4 x 4, frame 0 the identity) the LiDAR odometry
+    /// estimated, when the fit ran it (`odometry` parameter) instead of using given poses.
+    #[serde(default)]
+    pub estimated_poses: Option<Vec<[f64; 16]>>,
 }
 
 /// A fitted motion model of one sequence.

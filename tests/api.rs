@@ -480,6 +480,8 @@ async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
         assert_eq!(status, 409, "{p}");
         let (status, _) = s.get("/v1/jobs/{id}/labels", &format!("/v1/jobs/{job}/labels")).await;
         assert_eq!(status, 409);
+        let (status, p) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
+        assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:conflict")), "{p}");
     }
     // Cancel both: the queued one at once, the running one at its next iteration.
     let (status, j) = s.post_json("/v1/jobs/{id}/cancel", &format!("/v1/jobs/{queued}/cancel"), &json!({})).await;
@@ -541,6 +543,65 @@ async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
     assert_eq!(status, 200, "{a}");
     drop(s);
     let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Three sweeps of a room-sized corner (floor and three walls, 0.5 m grid) from a sensor that
+/// does not move: enough structure for the odometry.
+fn corner_frames() -> Vec<Vec<[f32; 3]>> {
+    let mut points = Vec::new();
+    for i in 0..60 {
+        for j in 0..60 {
+            let (u, v) = (-15.0 + 0.5 * i as f32, 0.25 * j as f32);
+            points.push([u, -15.0 + 0.5 * j as f32, -1.5]);
+            points.push([12.0, u, -1.5 + v]);
+            points.push([u, 9.0, -1.5 + v]);
+            points.push([u, -10.0, -1.5 + v]);
+        }
+    }
+    vec![points; 3]
+}
+
+#[tokio::test]
+async fn poses_are_the_estimate_or_the_uploaded_ones_and_a_fit_without_any_is_a_conflict() {
+    let s = TestServer::start().await;
+    let f = corner_frames();
+    let seq = s.upload(&f, Some(vec![0.0, 0.1, 0.2])).await;
+    let job = s.submit(&seq, "ntp").await;
+    s.wait_status(&job, "succeeded").await;
+    let (status, body) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
+    assert_eq!((status, body["estimated"].as_bool()), (200, Some(true)), "{body}");
+    let poses = body["poses"].as_array().unwrap();
+    assert_eq!(poses.len(), 3);
+    // The sensor stood still: every estimate is the identity, to well under a millimetre.
+    for pose in poses {
+        for (i, v) in pose.as_array().unwrap().iter().enumerate() {
+            let identity = if i % 5 == 0 { 1.0 } else { 0.0 };
+            assert!((v.as_f64().unwrap() - identity).abs() < 1e-4, "{pose}");
+        }
+    }
+
+    // Uploaded poses come back as given, not estimated.
+    let shifted = |x: f64| vec![1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, 2.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+    let given = vec![shifted(0.0), shifted(0.5), shifted(1.0)];
+    let (status, with_poses) =
+        s.post_json("/v1/sequences", "/v1/sequences", &json!({ "frames": f, "poses": given })).await;
+    assert_eq!(status, 201, "{with_poses}");
+    let job = s.submit(with_poses["id"].as_str().unwrap(), "ntp").await;
+    s.wait_status(&job, "succeeded").await;
+    let (status, body) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
+    assert_eq!((status, &body["estimated"], &body["poses"]), (200, &json!(false), &json!(given)), "{body}");
+
+    // Odometry off and no poses uploaded: the fit worked in sensor coordinates.
+    let mut params = common::tiny_params();
+    params["odometry"] = json!("off");
+    let (status, queued) =
+        s.post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "method": "ntp", "params": params })).await;
+    assert_eq!(status, 202, "{queued}");
+    let job = queued["id"].as_str().unwrap();
+    s.wait_status(job, "succeeded").await;
+    let (status, p) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
+    assert_eq!(status, 409, "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("without poses"), "{p}");
 }
 
 #[tokio::test]

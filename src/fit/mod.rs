@@ -13,7 +13,7 @@ pub mod prepare;
 mod rigidity;
 pub mod tracks;
 
-pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, ValidFitParams};
+pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
 
 use std::ops::ControlFlow;
 
@@ -142,11 +142,12 @@ pub fn fit_sequence(
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
-    let frame_poses = fit_frame_poses(sequence, params)?;
+    let FitCoordinates { frame_poses, estimated_poses } = fit_coordinates(sequence, params)?;
     let with_clusters = method.uses_rigidity() || params.rigid_tracks || params.moving_bodies;
     let (frames, frame_reports) =
         prepare::prepare_frames(sequence, params, with_clusters, true, frame_poses.as_deref())?;
-    let mut report = FitReport { frames: frame_reports, params: Some(params.clone()), ..FitReport::default() };
+    let mut report =
+        FitReport { frames: frame_reports, params: Some(params.clone()), estimated_poses, ..FitReport::default() };
     // The last iteration's progress, repeated while the rigid tracks are built.
     let mut last = None::<Progress>;
     let mut on_iteration = |p: &Progress| {
@@ -305,12 +306,57 @@ fn frame_poses_known(model: &FittedModel) -> bool {
 }
 
 /// The transforms from each frame's sensor coordinates to the coordinates the fit works in:
-/// frame 0's, when the sequence has poses and `params.use_poses`; `None` (each frame in its own
-/// sensor coordinates) otherwise.
+/// frame 0's, when the sequence has poses or `params.odometry` estimates them (and
+/// `params.use_poses`); `None` (each frame in its own sensor coordinates) otherwise.
 pub fn fit_frame_poses(sequence: &Sequence, params: &ValidFitParams) -> Result<Option<Vec<Rigid>>, FitError> {
-    match (&sequence.poses, params.use_poses) {
-        (Some(poses), true) => Ok(Some(poses_relative_to_first(poses)?)),
-        _ => Ok(None),
+    Ok(fit_coordinates(sequence, params)?.frame_poses)
+}
+
+/// The coordinates a fit works in, and where they came from.
+#[derive(Debug, Clone, Default)]
+pub struct FitCoordinates {
+    /// Transforms from each frame's sensor coordinates to frame 0's; `None`: each frame in its
+    /// own sensor coordinates.
+    pub frame_poses: Option<Vec<Rigid>>,
+    /// The odometry's sensor-to-world poses (row-major 4 x 4, frame 0 the identity), when it
+    /// estimated them.
+    pub estimated_poses: Option<Vec<[f64; 16]>>,
+}
+
+/// [`fit_frame_poses`], and the odometry's sensor-to-world poses (row-major 4 x 4, frame 0 the
+/// identity) when it estimated them.
+///
+/// In `auto` mode a sequence the odometry cannot register (e.g. every point within its minimum
+/// range) is fitted in sensor coordinates, as without odometry, with a warning; in `on` mode
+/// that is an error.
+pub fn fit_coordinates(sequence: &Sequence, params: &ValidFitParams) -> Result<FitCoordinates, FitError> {
+    if !params.use_poses {
+        return Ok(FitCoordinates::default());
+    }
+    let estimate = match (params.odometry, &sequence.poses) {
+        (OdometryMode::On, _) | (OdometryMode::Auto, None) => {
+            let odometry_params = crate::odometry::OdometryParams::default();
+            match crate::odometry::estimate_poses(
+                &sequence.frames,
+                sequence.timestamps_s.as_deref(),
+                &odometry_params,
+                &mut |_, _| ControlFlow::Continue(()),
+            ) {
+                Ok(odometry) => Some(odometry.row_major()),
+                Err(e) if params.odometry == OdometryMode::Auto => {
+                    tracing::warn!("odometry failed ({e}); fitting each frame in its own sensor coordinates");
+                    None
+                }
+                Err(e) => return Err(FitError::InvalidSequence(format!("odometry: {e}"))),
+            }
+        }
+        _ => None,
+    };
+    match estimate.as_deref().or(sequence.poses.as_deref()) {
+        Some(poses) => {
+            Ok(FitCoordinates { frame_poses: Some(poses_relative_to_first(poses)?), estimated_poses: estimate })
+        }
+        None => Ok(FitCoordinates::default()),
     }
 }
 

@@ -88,6 +88,32 @@ impl Mode {
     }
 }
 
+/// When a fit estimates the sensor poses itself (LiDAR odometry, `crate::odometry`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum OdometryMode {
+    /// Estimate the poses when the sequence has none.
+    Auto,
+    /// Estimate the poses even when the sequence has them, and ignore the given ones.
+    On,
+    /// Never estimate (the default until the odometry meets its accuracy targets,
+    /// docs/benchmarks.md section 8): a sequence without poses is fitted with each frame in its
+    /// own sensor coordinates (method.md).
+    #[default]
+    Off,
+}
+
+impl OdometryMode {
+    /// The lower-case name used in the API.
+    pub fn name(self) -> &'static str {
+        match self {
+            OdometryMode::Auto => "auto",
+            OdometryMode::On => "on",
+            OdometryMode::Off => "off",
+        }
+    }
+}
+
 /// User-facing hyper-parameters. Every field is optional; `None` takes the method's default
 /// (method.md). Unknown fields are rejected when deserialising.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -149,6 +175,12 @@ pub struct FitParams {
     /// frame's ego motion removed, so static points stand still (default true). Answers stay
     /// in the sensor frame of the time they refer to either way.
     pub use_poses: Option<bool>,
+    /// **Ours (default `off`):** estimate the sensor poses by LiDAR odometry
+    /// (`crate::odometry`) when the sequence has none (`auto`), always, ignoring given poses
+    /// (`on`), or never (`off`). The fit then runs as with given poses. Has no effect when
+    /// `use_poses` is false. Off by default: the odometry has not met its accuracy targets yet
+    /// (docs/benchmarks.md section 8).
+    pub odometry: Option<OdometryMode>,
     /// **Ours (default true for MBNT in fast mode, false otherwise):** start the network's output
     /// layer at zero, so the initial field is "nothing moves" (in the fit's coordinates: the
     /// static world when poses are used) instead of PyTorch's random initial velocities; the slide
@@ -265,6 +297,9 @@ pub struct ValidFitParams {
     /// See [`FitParams::use_poses`].
     #[serde(default = "default_true")]
     pub use_poses: bool,
+    /// See [`FitParams::odometry`]. Models saved before it existed did not estimate poses.
+    #[serde(default = "default_odometry_off")]
+    pub odometry: OdometryMode,
     /// See [`FitParams::zero_output_init`].
     #[serde(default)]
     pub zero_output_init: bool,
@@ -293,6 +328,10 @@ pub struct ValidFitParams {
 
 fn default_true() -> bool {
     true
+}
+
+fn default_odometry_off() -> OdometryMode {
+    OdometryMode::Off
 }
 
 /// Upper bound on iterations accepted from users, so one job cannot occupy a worker for days.
@@ -365,6 +404,7 @@ impl FitParams {
             early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
             use_poses: self.use_poses.unwrap_or(true),
+            odometry: self.odometry.unwrap_or(OdometryMode::Off),
             zero_output_init: self.zero_output_init.unwrap_or(fast && method == Method::Mbnt),
             rigidity_warmup_iterations: int_in(
                 "rigidity_warmup_iterations",
@@ -412,6 +452,8 @@ mod tests {
         assert_eq!(p.d_thr_motion_fraction, 0.0);
         assert!(!p.zero_output_init);
         assert!(!p.rigid_tracks && !p.moving_bodies);
+        assert_eq!(p.odometry, OdometryMode::Off);
+        assert_eq!(FitParams::default().check(Method::Mbnt).unwrap().odometry, OdometryMode::Off);
         assert!(FitParams::default().check(Method::Mbnt).unwrap().moving_bodies);
         assert!(!FitParams::default().check(Method::Mbnt).unwrap().rigid_tracks);
         assert!(!FitParams::default().check(Method::Ntp).unwrap().moving_bodies);

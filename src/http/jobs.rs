@@ -489,6 +489,51 @@ pub async fn objects(State(state): State<AppState>, UrlPath(id): UrlPath<String>
     Ok(Json(view).into_response())
 }
 
+/// The sensor poses a fit worked with, as `GET /v1/jobs/{id}/poses` shows them.
+#[derive(Debug, Serialize)]
+pub struct JobPoses {
+    job_id: String,
+    /// True when the fit's odometry estimated them, false when they were uploaded.
+    estimated: bool,
+    /// Sensor-to-world, row-major 4 x 4, one per frame.
+    poses: Vec<[f64; 16]>,
+}
+
+/// `GET /v1/jobs/{id}/poses`: the sensor-to-world poses of a succeeded fit, estimated by its
+/// odometry or uploaded with the sequence; 409 when it worked without poses.
+pub async fn poses(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Json<JobPoses>, ApiError> {
+    let job = load_job(&state, &id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::Conflict(format!(
+            "the job is {}; poses exist only for a succeeded job",
+            job.status.as_str()
+        )));
+    }
+    let model = state.model(job.id).await?;
+    let job_id = job.id.to_string();
+    if let Some(poses) = &model.report().estimated_poses {
+        return Ok(Json(JobPoses { job_id, estimated: true, poses: poses.clone() }));
+    }
+    // Without an estimate, the fit used the uploaded poses exactly when it had them and was
+    // allowed to (`fit::fit_coordinates`).
+    if job.params.use_poses {
+        let sequence_id = job.sequence_id;
+        let record = state
+            .blocking(move |s| Ok(s.get_sequence(sequence_id)?))
+            .await?
+            .ok_or_else(|| ApiError::Conflict("the job's sequence has been deleted".into()))?;
+        if let Some(poses) = record.poses {
+            return Ok(Json(JobPoses { job_id, estimated: false, poses }));
+        }
+    }
+    Err(ApiError::Conflict(
+        "the fit worked without poses, each frame in its own sensor coordinates: the sequence has none and \
+         odometry did not estimate them (parameter `odometry` off, `use_poses` false, or the odometry could not \
+         register the frames)"
+            .into(),
+    ))
+}
+
 /// Query string of `GET /v1/jobs/{id}/labels`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]

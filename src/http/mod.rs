@@ -121,6 +121,7 @@ pub const ROUTES: &[Route] = &[
     Route { method: "POST", path: "/v1/jobs/{id}/query", handler: || post(jobs::query) },
     Route { method: "GET", path: "/v1/jobs/{id}/labels", handler: || get(jobs::labels) },
     Route { method: "GET", path: "/v1/jobs/{id}/objects", handler: || get(jobs::objects) },
+    Route { method: "GET", path: "/v1/jobs/{id}/poses", handler: || get(jobs::poses) },
 ];
 
 /// Shared state of the handlers.
