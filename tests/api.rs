@@ -566,7 +566,13 @@ async fn poses_are_the_estimate_or_the_uploaded_ones_and_a_fit_without_any_is_a_
     let s = TestServer::start().await;
     let f = corner_frames();
     let seq = s.upload(&f, Some(vec![0.0, 0.1, 0.2])).await;
-    let job = s.submit(&seq, "ntp").await;
+    // The odometry is off by default (docs/benchmarks.md section 8): asked for here.
+    let mut auto = common::tiny_params();
+    auto["odometry"] = json!("auto");
+    let (status, queued) =
+        s.post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "method": "ntp", "params": auto })).await;
+    assert_eq!(status, 202, "{queued}");
+    let job = queued["id"].as_str().unwrap().to_string();
     s.wait_status(&job, "succeeded").await;
     let (status, body) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
     assert_eq!((status, body["estimated"].as_bool()), (200, Some(true)), "{body}");
