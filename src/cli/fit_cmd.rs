@@ -20,6 +20,11 @@ pub struct FitArgs {
     /// A text file with one timestamp (s) per frame; frame indices are the time axis otherwise.
     #[arg(long)]
     pub timestamps: Option<PathBuf>,
+    /// A text file of sensor-to-world poses, one per frame, 12 (KITTI poses.txt, row-major 3 x 4)
+    /// or 16 (row-major 4 x 4) numbers per line: the ego motion is then removed and MBNT's scene
+    /// model (still world + moving bodies) applies.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
     /// The method.
     #[arg(long, default_value = "mbnt")]
     pub method: Method,
@@ -36,7 +41,8 @@ pub struct FitArgs {
     #[arg(long)]
     pub mode: Option<Mode>,
     /// Output `.npz`: `traj_KKK` (N_k x T x 3 positions of frame k's points at every frame
-    /// time) for the frames chosen by --trajectories, `flow_KKK` scene-flow labels, `timestamps`.
+    /// time) for the frames chosen by --trajectories, `flow_KKK` scene-flow labels, `object_KKK`
+    /// (the moving body of each point of frame k, -1 for none), `timestamps`.
     #[arg(long, default_value = "mbnt-fit.npz")]
     pub out: PathBuf,
     /// Frames whose dense trajectories are written: `first` (frame 0), `all`, or `none`.
@@ -93,7 +99,19 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     params.seed = args.seed.or(params.seed);
     params.mode = args.mode.or(params.mode);
     let params = params.check(args.method)?;
-    let sequence = Sequence { frames, timestamps_s, poses: None };
+    let poses = match &args.poses {
+        Some(path) => Some(
+            super::odometry_cmd::read_poses(path, frames.len())?
+                .iter()
+                .map(|pose| {
+                    let m = pose.to_homogeneous();
+                    std::array::from_fn(|i| m[(i / 4, i % 4)])
+                })
+                .collect::<Vec<[f64; 16]>>(),
+        ),
+        None => None,
+    };
+    let sequence = Sequence { frames, timestamps_s, poses };
     eprintln!(
         "fitting {} to {} frames ({} points) with {} iterations",
         args.method.name(),
@@ -111,7 +129,7 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
             let elapsed = started.elapsed().as_secs_f64();
             let eta = elapsed / p.iteration as f64 * (p.iterations - p.iteration) as f64;
             let line = if let Some(t) = p.rigid_tracks {
-                format!("rigid tracks: {}/{} clusters tested  {elapsed:.0}s", t.clusters_done, t.clusters)
+                format!("moving bodies: {}/{} clusters tested  {elapsed:.0}s", t.clusters_done, t.clusters)
             } else {
                 format!(
                     "iteration {}/{}  loss {:.5} (chamfer {:.5}, cycle {:.5}, rigidity {:.5})  {:.0}s, eta {:.0}s",
@@ -144,6 +162,12 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
             f.input_points, f.ground_points, f.out_of_range_points, f.fitted_points, f.clusters
         );
     }
+    if params.moving_bodies || params.rigid_tracks {
+        eprintln!(
+            "{} moving bodies, {} rigid tracks, {} points answered by the network ({:.1} s)",
+            report.moving_bodies, report.rigid_tracks, report.free_points, report.rigid_tracks_seconds
+        );
+    }
     eprintln!("fit took {:.1} s", report.fit_seconds);
 
     let axis = model.time_axis().clone();
@@ -162,6 +186,10 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     }
     for (k, flow) in model.scene_flow(&sequence.frames).iter().enumerate() {
         npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+    }
+    // The moving body (object id) of every point, -1 for none, as the service's labels.
+    for (k, ids) in model.object_ids(&sequence.frames).iter().enumerate() {
+        npz.add_i32(&format!("object_{k:03}"), &[ids.len()], ids)?;
     }
     npz.add_f64("timestamps", &[times.len()], &times)?;
     npz.finish()?.flush()?;
