@@ -268,8 +268,18 @@ impl FittedModel {
     /// that neither a body nor the still world explains.
     pub(crate) fn network_positions(&self, points: &[Point], u_obs: f64, u_times: &[f64]) -> Vec<Point> {
         let mut out = vec![[0f32; 3]; points.len() * u_times.len()];
+        self.network_positions_into(points, u_obs, u_times, &mut out);
+        out
+    }
+
+    /// [`FittedModel::network_positions`] into `out` (point-major), in chunks of
+    /// [`QUERY_CHUNK`] points so that large queries stay bounded in memory.
+    fn network_positions_into(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
+        if u_times.is_empty() {
+            return;
+        }
         let frames = self.time_axis.frames();
-        for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * u_times.len().max(1))) {
+        for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * u_times.len())) {
             match &self.motion {
                 Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, u_times, out_chunk),
                 Motion::PairFlows { forward, backward } => {
@@ -277,7 +287,6 @@ impl FittedModel {
                 }
             }
         }
-        out
     }
 
     /// Per frame, the transform from sensor coordinates to the fit's coordinates, when the fit
@@ -324,7 +333,6 @@ impl FittedModel {
         if times.is_empty() {
             return Ok(out);
         }
-        let frames = self.time_axis.frames();
         // With poses, queries go into the fit's frame and answers come back into the sensor
         // frame of each queried time.
         let moved_in;
@@ -336,22 +344,15 @@ impl FittedModel {
             }
             None => points,
         };
-        for (chunk, out_chunk) in points.chunks(QUERY_CHUNK).zip(out.chunks_mut(QUERY_CHUNK * times.len())) {
-            if self.still_world {
-                // The still world: in the fit's (ego-motion-free) coordinates nothing moves;
-                // the network answers its free points only.
-                for (p, row) in chunk.iter().zip(out_chunk.chunks_mut(times.len())) {
-                    row.fill(*p);
-                }
-                self.apply_free_points(chunk, u_obs, &u_times, out_chunk);
-                continue;
+        if self.still_world {
+            // The still world: in the fit's (ego-motion-free) coordinates nothing moves; the
+            // network answers its free points only.
+            for (p, row) in points.iter().zip(out.chunks_mut(times.len())) {
+                row.fill(*p);
             }
-            match &self.motion {
-                Motion::Trajectory(mlp) => trajectory_positions(mlp, frames, chunk, u_obs, &u_times, out_chunk),
-                Motion::PairFlows { forward, backward } => {
-                    euler_positions(forward, backward, chunk, u_obs, &u_times, out_chunk)
-                }
-            }
+            self.apply_free_points(points, u_obs, &u_times, &mut out);
+        } else {
+            self.network_positions_into(points, u_obs, &u_times, &mut out);
         }
         self.apply_tracks(points, u_obs, &u_times, &mut out);
         self.apply_bodies(points, u_obs, &u_times, &mut out);

@@ -101,13 +101,7 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     let params = params.check(args.method)?;
     let poses = match &args.poses {
         Some(path) => Some(
-            super::odometry_cmd::read_poses(path, frames.len())?
-                .iter()
-                .map(|pose| {
-                    let m = pose.to_homogeneous();
-                    std::array::from_fn(|i| m[(i / 4, i % 4)])
-                })
-                .collect::<Vec<[f64; 16]>>(),
+            super::odometry_cmd::read_poses(path, frames.len())?.iter().map(crate::odometry::to_row_major).collect(),
         ),
         None => None,
     };

@@ -26,7 +26,7 @@
 //! deterministic (the seed tests run in parallel, the tracking in a fixed order), with a
 //! progress callback that can stop it.
 
-use std::collections::HashMap;
+use std::collections::HashSet;
 use std::ops::ControlFlow;
 
 use rayon::prelude::*;
@@ -231,18 +231,18 @@ impl Aabb {
 /// One cube per point: keeps the first point that falls into each cube of edge `voxel_m`.
 struct VoxelSet {
     voxel_m: f32,
-    cells: HashMap<[i32; 3], ()>,
+    cells: HashSet<[i32; 3]>,
 }
 
 impl VoxelSet {
     fn new(voxel_m: f32) -> Self {
-        Self { voxel_m, cells: HashMap::new() }
+        Self { voxel_m, cells: HashSet::new() }
     }
 
     /// Whether `p` falls into a cube not seen before (and marks it seen).
     fn insert(&mut self, p: &Point) -> bool {
         let key = std::array::from_fn(|c| (p[c] / self.voxel_m).floor() as i32);
-        self.cells.insert(key, ()).is_none()
+        self.cells.insert(key)
     }
 }
 

@@ -171,7 +171,7 @@ pub fn fit_sequence(
     };
     // The scene model's bodies need the ego motion removed: without poses every static cluster
     // would look like a moving one.
-    let bodies = params.moving_bodies && frame_poses_known(&model);
+    let bodies = params.moving_bodies && model.frame_poses().is_some();
     if !params.rigid_tracks && !bodies {
         return Ok(model);
     }
@@ -298,11 +298,6 @@ fn network_free_points(model: &FittedModel, frames: &[&[Point]], trees: &[&KdTre
                 .collect()
         })
         .collect()
-}
-
-/// Whether the model works in pose-compensated coordinates (poses given or estimated).
-fn frame_poses_known(model: &FittedModel) -> bool {
-    model.frame_poses().is_some()
 }
 
 /// The transforms from each frame's sensor coordinates to the coordinates the fit works in:

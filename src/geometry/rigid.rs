@@ -88,6 +88,15 @@ impl Rigid {
         }
     }
 
+    /// The motion as a row-major 4 x 4 matrix (the API's layout).
+    pub fn to_row_major(&self) -> [f64; 16] {
+        let (r, t) = (&self.rotation, &self.translation);
+        [
+            r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1], r[2][2], t[2], 0.0,
+            0.0, 0.0, 1.0,
+        ]
+    }
+
     /// Rotation angle of R (rad, in [0, π]).
     pub fn angle_rad(&self) -> f64 {
         let r = &self.rotation;

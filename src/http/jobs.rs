@@ -19,6 +19,7 @@ use super::sequences::is_json;
 use super::{ApiError, AppState, parse_id};
 use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
+use crate::geometry::rigid::Rigid;
 use crate::jobs::JobQueue;
 use crate::store::{CancelOutcome, JobFilter, JobProgress, JobRecord, JobStatus, rfc3339};
 use crate::trajectory::QueryError;
@@ -402,6 +403,18 @@ pub async fn query(
     Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], json).into_response())
 }
 
+/// The job `id` when it has succeeded; 409 naming `what` exists only then otherwise.
+async fn succeeded_job(state: &AppState, id: &str, what: &str) -> Result<JobRecord, ApiError> {
+    let job = load_job(state, id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::Conflict(format!(
+            "the job is {}; {what} exist only for a succeeded job",
+            job.status.as_str()
+        )));
+    }
+    Ok(job)
+}
+
 /// One moving body as `GET /v1/jobs/{id}/objects` lists it.
 #[derive(Debug, Serialize)]
 struct ObjectView {
@@ -434,28 +447,14 @@ struct ObjectsView {
     objects: Vec<ObjectView>,
 }
 
-fn matrix(r: &crate::geometry::rigid::Rigid) -> [f64; 16] {
-    let (m, t) = (&r.rotation, &r.translation);
-    [
-        m[0][0], m[0][1], m[0][2], t[0], m[1][0], m[1][1], m[1][2], t[1], m[2][0], m[2][1], m[2][2], t[2], 0.0, 0.0,
-        0.0, 1.0,
-    ]
-}
-
 /// `GET /v1/jobs/{id}/objects`: the moving bodies of a succeeded job's scene model, each one
 /// object over the sequence with its pose at every frame time, its extent and its points per
 /// frame.
 pub async fn objects(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
-    let job = load_job(&state, &id).await?;
-    if job.status != JobStatus::Succeeded {
-        return Err(ApiError::Conflict(format!(
-            "the job is {}; objects exist only for a succeeded job",
-            job.status.as_str()
-        )));
-    }
+    let job = succeeded_job(&state, &id, "objects").await?;
     let model = state.model(job.id).await?;
     let axis = model.time_axis();
-    let identity = crate::geometry::rigid::Rigid::identity();
+    let identity = Rigid::identity();
     let view = ObjectsView {
         job_id: job.id.to_string(),
         frames: axis.frames(),
@@ -468,14 +467,14 @@ pub async fn objects(State(state): State<AppState>, UrlPath(id): UrlPath<String>
                 id: b.id,
                 frames_seen: b.frames_seen(),
                 points_per_frame: b.member_counts.clone(),
-                poses: b.poses.iter().map(matrix).collect(),
+                poses: b.poses.iter().map(Rigid::to_row_major).collect(),
                 poses_sensor: b
                     .poses
                     .iter()
                     .enumerate()
                     .map(|(k, pose)| {
                         let to_fit = model.frame_poses().map_or(&identity, |p| &p[k]);
-                        matrix(&to_fit.inverse().compose(pose))
+                        to_fit.inverse().compose(pose).to_row_major()
                     })
                     .collect(),
                 extent: ExtentView {
@@ -502,13 +501,7 @@ pub struct JobPoses {
 /// `GET /v1/jobs/{id}/poses`: the sensor-to-world poses of a succeeded fit, estimated by its
 /// odometry or uploaded with the sequence; 409 when it worked without poses.
 pub async fn poses(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Json<JobPoses>, ApiError> {
-    let job = load_job(&state, &id).await?;
-    if job.status != JobStatus::Succeeded {
-        return Err(ApiError::Conflict(format!(
-            "the job is {}; poses exist only for a succeeded job",
-            job.status.as_str()
-        )));
-    }
+    let job = succeeded_job(&state, &id, "poses").await?;
     let model = state.model(job.id).await?;
     let job_id = job.id.to_string();
     if let Some(poses) = &model.report().estimated_poses {
