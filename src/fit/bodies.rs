@@ -14,13 +14,18 @@
 //!    sweep that sees only a flank is held by the shape seen before (the aperture problem of a
 //!    pairwise chain), and each frame's pose is a registration to the model, not the end of a
 //!    chain of pairwise steps. A frame with no associated cluster keeps the prediction;
-//! 3. **smoothing**: the observed poses are fitted with a planar motion of constant acceleration
-//!    and constant turn-rate change (quadratic in time for heading and position, least squares),
-//!    and frames far from that motion are re-fitted without them; unobserved frames take the
-//!    smooth motion;
-//! 4. **still or moving from all frames**: a body whose centre moves less than
-//!    [`BodyParams::min_travel_m`] over the frames it is seen in is dropped (its clusters stay
-//!    with the still world).
+//! 3. **smoothing**: the observed poses are fitted locally (the eight observed frames nearest in
+//!    time) with a planar motion of constant acceleration and constant change of turn rate
+//!    (quadratic in time for heading and position, least squares); a frame far from the fit of
+//!    its neighbours is an outlier, and outliers and unobserved frames take the smooth motion
+//!    (at constant velocity and turn rate beyond the observed span);
+//! 4. **still or moving from all frames**: a body is kept when it is seen in enough frames (every
+//!    frame of a pair), its registrations lie on its smooth motion, its motion explains most of
+//!    its observed frames (and most of its points) clearly better than standing still, tested
+//!    from the seed and from the nearest observed frames towards it, its centre travels at least
+//!    [`BodyParams::min_travel_m`], and its shape is a road user's (at most a lane wide across
+//!    its travel, between a wheel's and a truck's height). Otherwise its clusters stay with the
+//!    still world, free to join a body found from another seed.
 //!
 //! Pure computation on prepared frames (fit coordinates, ego motion removed): no I/O,
 //! deterministic (the seed tests run in parallel, the tracking in a fixed order), with a
@@ -179,15 +184,17 @@ pub fn find_moving_bodies(
             label
         })
         .collect();
+    let mut tried: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
     let mut bodies = Vec::new();
     for &(k, c, probe, first) in &seeds {
-        if taken[k][c] {
+        if taken[k][c] || tried[k][c] {
             continue;
         }
         let tracked = track_body(k, c, probe, first, frames, trees, clusters, &boxes, &labels, &taken, times, params);
         if !tracked.moving {
-            // Still after all: only its seed is taken, so its neighbours may still seed bodies.
-            taken[k][c] = true;
+            // Still after all, or a seed step that led the track astray: it seeds no other
+            // body, but stays free to join one found from a better seed.
+            tried[k][c] = true;
             continue;
         }
         for &(j, cluster) in &tracked.clusters {
@@ -290,6 +297,7 @@ fn track_body(
     observed[k] = true;
     on_body[k] = Picked { points: clusters[k][c].clone(), clusters: vec![c] };
     let max_src = params.seed.max_track_points;
+    let seed_centre = centroid(&model);
     for forward in [true, false] {
         let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
         let mut previous = Rigid::identity();
@@ -297,10 +305,11 @@ fn track_body(
         for (n, j) in steps.into_iter().enumerate() {
             let guess = if n == 0 {
                 // The seed step, per frame (planar, a fraction of it when the test spanned
-                // several frames), reversed when this chain runs the other way.
+                // several frames), reversed when this chain runs the other way. The fraction is
+                // taken about the cluster's centre: the step's rotation is about the origin, tens
+                // of metres away, and a share of its yaw would swing the car off its path.
                 let gap = probe.abs_diff(k) as f64;
-                let step = planar_part(&first);
-                let per_frame = planar(step.translation[0] / gap, step.translation[1] / gap, yaw_of(&step) / gap);
+                let per_frame = fraction_about(&planar_part(&first), seed_centre, 1.0 / gap);
                 if forward == (probe > k) { per_frame } else { per_frame.inverse() }
             } else {
                 // Constant velocity, scaled to uneven frame spacing by the translation only.
@@ -363,12 +372,43 @@ fn track_body(
     let mut scratch = DistanceScratch::default();
     let cap_m = params.seed.max_corr_dist_m;
     let (mut tested, mut clear) = (0usize, 0usize);
+    // The same counts weighted by the frame's points on the body: a small seed that grew onto a
+    // static structure in some frames is mostly not moving, however many frames its seed moves in.
+    let (mut tested_points, mut clear_points) = (0usize, 0usize);
+    let is_clear = |still: f64, moved: f64| {
+        still - moved >= params.seed.min_gain_m && moved <= params.seed.max_residual_share * still
+    };
     for j in (0..t).filter(|&j| j != k && observed[j]) {
+        tested += 1;
+        tested_points += on_body[j].points.len();
         let still = mean_distance_m(&src, &Rigid::identity(), trees[j], cap_m, &mut scratch);
         let moved = mean_distance_m(&src, &poses[j], trees[j], cap_m, &mut scratch);
-        tested += 1;
-        if still - moved >= params.seed.min_gain_m && moved <= params.seed.max_residual_share * still {
+        if is_clear(still, moved) {
             clear += 1;
+            clear_points += on_body[j].points.len();
+            continue;
+        }
+        // Far from the seed frame a car turns another face to the sensor, and the seed's points
+        // no longer match its sweep: the same test from the nearest observed frames towards the
+        // seed, whose view differs by a few steps only (one step, and at least three for a slow
+        // car moving along its own length, which a single step leaves half on its old place).
+        let towards: Vec<usize> = if j > k {
+            (k..j).rev().filter(|&i| observed[i]).collect()
+        } else {
+            (j + 1..=k).filter(|&i| observed[i]).collect()
+        };
+        let nearest = towards.first().copied();
+        let three_on = towards.iter().copied().find(|&i| i.abs_diff(j) >= SLOW_SEED_GAP);
+        for i in [nearest, three_on].into_iter().flatten() {
+            let from = cluster_subsample(frames[i], &on_body[i].points, max_src);
+            let step = poses[j].compose(&poses[i].inverse());
+            let still = mean_distance_m(&from, &Rigid::identity(), trees[j], cap_m, &mut scratch);
+            let moved = mean_distance_m(&from, &step, trees[j], cap_m, &mut scratch);
+            if is_clear(still, moved) {
+                clear += 1;
+                clear_points += on_body[j].points.len();
+                break;
+            }
         }
     }
     let travel_m = (0..t)
@@ -408,10 +448,22 @@ fn track_body(
     // A body is a consistent object: seen often enough to judge, its registrations mostly on one
     // smooth motion (a "body" that hops between unrelated clusters is not), clearly not standing
     // still, and travelling.
-    let moving = seen >= MIN_FRAMES_SEEN
+    // A sequence shorter than MIN_FRAMES_SEEN (a pair) asks for every frame and a travel in
+    // proportion: there the seed test is the whole evidence, as in pairwise cluster registration.
+    let need_seen = MIN_FRAMES_SEEN.min(t);
+    let min_travel_m = params.min_travel_m * (need_seen - 1) as f64 / (MIN_FRAMES_SEEN - 1) as f64;
+    // The shape of a road user: a vehicle moves along its length, so its extent across its travel
+    // is a lane's at most, and it stands up from the road. A flat patch of leftover ground or a
+    // wall that slides along itself (the aperture problem of a surface whose visible part moves
+    // with the sensor) is neither.
+    let size: [f32; 3] = std::array::from_fn(|i| extent_max_m[i] - extent_min_m[i]);
+    let plausible = size[1] <= MAX_WIDTH_M && (MIN_HEIGHT_M..=MAX_HEIGHT_M).contains(&size[2]);
+    let moving = plausible
+        && seen >= need_seen
         && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
         && 2 * clear >= tested
-        && travel_m >= params.min_travel_m;
+        && 2 * clear_points >= tested_points
+        && travel_m >= min_travel_m;
     Tracked { body, clusters: clusters_on_body, moving }
 }
 
@@ -424,7 +476,7 @@ struct Picked {
     clusters: Vec<usize>,
 }
 
-/// A body must be seen in at least this many frames.
+/// A body must be seen in at least this many frames (every frame of a shorter sequence).
 const MIN_FRAMES_SEEN: usize = 4;
 
 /// At least this share of a body's observed frames must lie on its smooth motion.
@@ -432,6 +484,19 @@ const MIN_SMOOTH_SHARE: f64 = 0.7;
 
 /// A cluster's box diagonal may exceed the body's by at most this (m) for it to join whole.
 const MAX_GROWTH_M: f32 = 2.0;
+
+/// A body is at most this wide across its direction of travel (m; a lane, with the model's
+/// sampling and registration spread).
+const MAX_WIDTH_M: f32 = 3.5;
+
+/// A body's height (m): at least a wheel's, at most a truck's.
+const MIN_HEIGHT_M: f32 = 0.25;
+/// See [`MIN_HEIGHT_M`].
+const MAX_HEIGHT_M: f32 = 4.5;
+
+/// No cluster whose box diagonal exceeds this (m; a long van's) joins a body whole, however large
+/// the body has grown: growth by whole clusters must not run on into buildings.
+const MAX_BODY_DIAGONAL_M: f32 = 10.0;
 
 /// Fewer points than this on a body's predicted place do not make an observation.
 const MIN_OBSERVED_POINTS: usize = 10;
@@ -463,7 +528,7 @@ fn associate(
     let mut whole = vec![false; clusters[j].len()];
     // A cluster much larger than the body is not the body (a wall it drives past): only its
     // points near the body may join, as loose points.
-    let max_diagonal_m = posed_box.diagonal_m() + MAX_GROWTH_M;
+    let max_diagonal_m = (posed_box.diagonal_m() + MAX_GROWTH_M).min(MAX_BODY_DIAGONAL_M);
     for (ci, cluster) in clusters[j].iter().enumerate() {
         if taken[j][ci] || !boxes[j][ci].overlaps(&posed_box, radius_m) || boxes[j][ci].diagonal_m() > max_diagonal_m {
             continue;
@@ -525,6 +590,17 @@ fn planar_part(m: &Rigid) -> Rigid {
     planar(m.translation[0], m.translation[1], yaw_of(m))
 }
 
+/// The share `share` of a planar motion, turning about `centre` instead of the origin: the
+/// centre moves by `share` of its displacement and the heading by `share` of the turn.
+fn fraction_about(m: &Rigid, centre: [f64; 3], share: f64) -> Rigid {
+    let moved = m.apply_f64(centre);
+    let yaw = yaw_of(m) * share;
+    let (s, c) = yaw.sin_cos();
+    let turned = [c * centre[0] - s * centre[1], s * centre[0] + c * centre[1]];
+    let target = [centre[0] + (moved[0] - centre[0]) * share, centre[1] + (moved[1] - centre[1]) * share];
+    planar(target[0] - turned[0], target[1] - turned[1], yaw)
+}
+
 /// Yaw (rad) of a rotation about z (the rotation's x axis projected on the ground plane).
 fn yaw_of(r: &Rigid) -> f64 {
     r.rotation[1][0].atan2(r.rotation[0][0])
@@ -564,22 +640,18 @@ fn poly_fit(xs: &[f64], ys: &[f64], degree: usize) -> Vec<f64> {
     (0..n).map(|i| a[i][n] / a[i][i]).collect()
 }
 
-/// The polynomial at x.
-fn poly_eval(coeffs: &[f64], x: f64) -> f64 {
-    coeffs.iter().rev().fold(0.0, |acc, &c| acc * x + c)
-}
-
-/// The polynomial's derivative at x.
-fn poly_slope(coeffs: &[f64], x: f64) -> f64 {
-    coeffs.iter().enumerate().skip(1).rev().fold(0.0, |acc, (i, &c)| acc * x + i as f64 * c)
-}
+/// Observed frames (nearest in time) each local fit of [`smooth_poses`] uses.
+const SMOOTH_NEIGHBOURS: usize = 8;
 
 /// Fills in the poses of unobserved frames and of outlying registrations from a smooth planar
-/// motion of the body's centre: x, y and heading as quadratics in time (constant acceleration and
-/// constant change of turn rate), fitted to the observed frames. Observed frames whose centre lies
-/// farther than `outlier_m` from the fit are dropped from it once and re-fitted, and take its pose;
-/// the other observed frames keep their registration. z, roll and pitch stay as tracked. Needs four
-/// observed frames; with fewer the poses stay as tracked.
+/// motion of the body's centre: x, y and heading as quadratics in time, fitted locally to the
+/// [`SMOOTH_NEIGHBOURS`] observed frames nearest in time (a turn that starts or ends inside the
+/// sequence is no single quadratic). An observed frame whose centre lies farther than
+/// `outlier_m` from the fit of its neighbours (itself left out) is an outlier: it takes the pose
+/// of the fit of its inlying neighbours; the other observed frames keep their registration. z,
+/// roll and pitch stay as tracked. Outside the observed span, the local fit at its end continues
+/// at constant velocity and turn rate. Needs four observed frames; with fewer the poses stay as
+/// tracked.
 ///
 /// Returns how many observed frames the smooth motion holds within `outlier_m` (all of them when
 /// there are too few to fit).
@@ -588,7 +660,6 @@ fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [
     if seen.len() < 4 {
         return seen.len();
     }
-    let t0 = seen.iter().map(|&j| times[j]).sum::<f64>() / seen.len() as f64;
     let pos: Vec<[f64; 3]> = poses.iter().map(|p| p.apply_f64(centre)).collect();
     // Headings unwrapped along the frames so the fit does not see jumps of 2 pi.
     let mut yaws: Vec<f64> = poses.iter().map(yaw_of).collect();
@@ -600,39 +671,48 @@ fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [
             yaws[j] += 2.0 * std::f64::consts::PI;
         }
     }
-    let fit = |use_: &[usize]| -> [Vec<f64>; 3] {
-        let xs: Vec<f64> = use_.iter().map(|&j| times[j] - t0).collect();
-        let px: Vec<f64> = use_.iter().map(|&j| pos[j][0]).collect();
-        let py: Vec<f64> = use_.iter().map(|&j| pos[j][1]).collect();
-        let pyaw: Vec<f64> = use_.iter().map(|&j| yaws[j]).collect();
-        [poly_fit(&xs, &px, 2), poly_fit(&xs, &py, 2), poly_fit(&xs, &pyaw, 2)]
+    // The quadratics of x, y and heading through the frames of `pool` nearest in time to `at`
+    // (time centred on `at`), leaving `skip` out; None when fewer than four are left.
+    let local_fit = |pool: &[usize], at: f64, skip: Option<usize>| -> Option<[Vec<f64>; 3]> {
+        let mut near: Vec<usize> = pool.iter().copied().filter(|&j| Some(j) != skip).collect();
+        if near.len() < 4 {
+            return None;
+        }
+        near.sort_by(|&a, &b| (times[a] - at).abs().total_cmp(&(times[b] - at).abs()).then(a.cmp(&b)));
+        near.truncate(SMOOTH_NEIGHBOURS);
+        let xs: Vec<f64> = near.iter().map(|&j| times[j] - at).collect();
+        let column = |f: &dyn Fn(usize) -> f64| near.iter().map(|&j| f(j)).collect::<Vec<f64>>();
+        Some([
+            poly_fit(&xs, &column(&|j| pos[j][0]), 2),
+            poly_fit(&xs, &column(&|j| pos[j][1]), 2),
+            poly_fit(&xs, &column(&|j| yaws[j]), 2),
+        ])
     };
-    let mut coeffs = fit(&seen);
-    let off = |coeffs: &[Vec<f64>; 3], j: usize| {
-        let x = times[j] - t0;
-        (poly_eval(&coeffs[0], x) - pos[j][0]).hypot(poly_eval(&coeffs[1], x) - pos[j][1])
-    };
-    let inliers: Vec<usize> = seen.iter().copied().filter(|&j| off(&coeffs, j) <= outlier_m).collect();
-    if inliers.len() < seen.len() && inliers.len() >= 4 {
-        coeffs = fit(&inliers);
-    }
-    let held = seen.iter().filter(|&&j| off(&coeffs, j) <= outlier_m).count();
-    let (first, last) = (times[seen[0]] - t0, times[seen[seen.len() - 1]] - t0);
+    let off = |c: &[Vec<f64>; 3], j: usize| (c[0][0] - pos[j][0]).hypot(c[1][0] - pos[j][1]);
+    let inliers: Vec<usize> = seen
+        .iter()
+        .copied()
+        .filter(|&j| local_fit(&seen, times[j], Some(j)).is_none_or(|c| off(&c, j) <= outlier_m))
+        .collect();
+    let held = inliers.len();
+    let pool = if inliers.len() >= 4 { inliers.clone() } else { seen.clone() };
+    let (first, last) = (times[pool[0]], times[pool[pool.len() - 1]]);
     for j in 0..poses.len() {
-        if observed[j] && off(&coeffs, j) <= outlier_m {
+        if observed[j] && inliers.contains(&j) {
             continue; // a good registration: kept, it also holds what a quadratic cannot
         }
-        let x = times[j] - t0;
         // Outside the observed span, constant velocity and turn rate from its end: a quadratic
         // extrapolated far runs away.
-        let edge = x.clamp(first, last);
-        let at_edge = |c: &[f64]| poly_eval(c, edge) + poly_slope(c, edge) * (x - edge);
-        let yaw = at_edge(&coeffs[2]);
+        let edge = times[j].clamp(first, last);
+        let Some(c) = local_fit(&pool, edge, None) else { continue };
+        let dt = times[j] - edge;
+        let at_edge = |c: &[f64]| c[0] + c[1] * dt;
+        let (x, y, yaw) = (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]));
         // Keep the observed tilt: the rotation's residual after removing its own yaw.
-        let (s, c) = (yaw - yaws[j]).sin_cos();
-        let turn = Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] };
+        let (s, co) = (yaw - yaws[j]).sin_cos();
+        let turn = Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] };
         let rotation = turn.compose(&poses[j]).rotation;
-        let at = [at_edge(&coeffs[0]), at_edge(&coeffs[1]), pos[j][2]];
+        let at = [x, y, pos[j][2]];
         let rotated = Rigid { rotation, translation: [0.0; 3] }.apply_f64(centre);
         poses[j] = Rigid { rotation, translation: std::array::from_fn(|i| at[i] - rotated[i]) };
     }
@@ -764,6 +844,49 @@ mod tests {
         assert_eq!(counts, 24);
         let ids: Vec<u32> = a.iter().map(|b| b.id).collect();
         assert_eq!(ids, vec![0, 1, 2]);
+    }
+
+    #[test]
+    fn in_a_pair_the_fast_boxes_are_bodies_tracked_within_a_decimetre_and_parked_ones_are_not() {
+        let s = scene(2);
+        let bodies = bodies_of(&s, &BodyParams::default());
+        // The straight (1 m per frame) and turning (0.8 m) boxes move clearly; the accelerating
+        // one (0.2 m along its own length) may stay still, but nothing else becomes a body.
+        assert!((2..=3).contains(&bodies.len()), "{} bodies", bodies.len());
+        let mut found = [false; 3];
+        for body in &bodies {
+            let motion = body.poses[1].compose(&body.poses[0].inverse());
+            let m0 = centroid(&body.members[0]);
+            let b = (0..3)
+                .min_by(|&a, &b| {
+                    let d = |i: usize| {
+                        let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
+                        (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
+                    };
+                    d(a).total_cmp(&d(b))
+                })
+                .unwrap();
+            found[b] = true;
+            let truth = s.truth[b][1].compose(&s.truth[b][0].inverse());
+            for corner in [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]] {
+                let p = s.truth[b][0].apply_f64(corner);
+                let (got, want) = (motion.apply_f64(p), truth.apply_f64(p));
+                let err = (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt();
+                assert!(err < 0.1, "box {b}: corner {err:.3} m off");
+            }
+        }
+        assert!(found[0] && found[1], "{found:?}");
+        // The same pair with every box parked: no body.
+        let mut parked = scene(2);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for k in 0..2 {
+            let mut frame: Vec<Point> = parked.frames[k][..800].to_vec();
+            for b in 0..3 {
+                frame.extend(box_surface(&mut rng, 500, [4.2, 1.8, 1.5]).iter().map(|p| parked.truth[b][0].apply(p)));
+            }
+            parked.frames[k] = frame;
+        }
+        assert!(bodies_of(&parked, &BodyParams::default()).is_empty());
     }
 
     #[test]

@@ -225,8 +225,13 @@ pub fn fit_sequence(
 /// network's positions of it in the neighbouring frames lie this much closer (m, mean capped
 /// nearest-neighbour distance) to those frames' points than its still position does...
 const FREE_MIN_GAIN_M: f64 = 0.1;
-/// ...and at most this share of the still distance.
+/// ...and at most this share of the still distance...
 const FREE_MAX_SHARE: f64 = 0.5;
+/// ...and the network moves it by at least this much per frame (m; 0.8 m/s at 10 Hz, slower
+/// than a walk): a network that slid the still world (0.5-1 m over 25 frames, docs/benchmarks.md
+/// section 11) moves it by 0.02-0.04 m per frame, and some of those slid points happen to land
+/// nearer the sparse neighbouring sweeps.
+const FREE_MIN_MOTION_M: f64 = 0.08;
 /// A point the network moves by at least this much per frame (m; 3 m/s at 10 Hz, ten times the
 /// static slide of section 3) is free too when its network positions are no farther from the
 /// neighbouring sweeps than its still position: a car moving along its own length keeps part of
@@ -282,7 +287,7 @@ fn network_free_points(model: &FittedModel, frames: &[&[Point]], trees: &[&KdTre
                         })
                         .sum::<f64>()
                         / count;
-                    (still - net >= FREE_MIN_GAIN_M && net <= FREE_MAX_SHARE * still)
+                    (travel >= FREE_MIN_MOTION_M && still - net >= FREE_MIN_GAIN_M && net <= FREE_MAX_SHARE * still)
                         || (travel >= FREE_MIN_TRAVEL_M && net <= still)
                 })
                 .collect();
