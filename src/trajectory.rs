@@ -3,6 +3,7 @@
 //! Times are in the sequence's own axis: its timestamps in seconds when it has them, frame
 //! indices 0..T-1 otherwise. Positions at time s are in the sensor frame of the sweep at s.
 
+use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
 use crate::fit::Method;
@@ -723,38 +724,18 @@ fn euler_positions(
 }
 
 /// The sensor-to-fit-frame transform at fractional frame index `u`: between two frames the
-/// rotation turns at a constant rate about one axis and the translation moves linearly.
+/// rotation turns at a constant rate about one axis (slerp) and the translation moves linearly.
 fn pose_at(poses: &[Rigid], u: f64) -> Rigid {
     let k = (u.max(0.0).floor() as usize).min(poses.len() - 1);
     let a = u - k as f64;
     if k + 1 >= poses.len() || a <= 0.0 {
         return poses[k];
     }
-    let (p, q) = (&poses[k], &poses[k + 1]);
-    // Relative rotation D = Rp^T Rq as axis and angle, scaled by `a` (Rodrigues).
-    let d: [[f64; 3]; 3] =
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[c][i] * q.rotation[c][j]).sum()));
-    let cos = ((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
-    let angle = cos.acos();
-    let partial = if angle < 1e-12 {
-        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-    } else {
-        let s = 2.0 * angle.sin();
-        let axis = [(d[2][1] - d[1][2]) / s, (d[0][2] - d[2][0]) / s, (d[1][0] - d[0][1]) / s];
-        let theta = a * angle;
-        let k = [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]];
-        let k2: [[f64; 3]; 3] =
-            std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| k[i][c] * k[c][j]).sum()));
-        std::array::from_fn(|i| {
-            std::array::from_fn(|j| {
-                f64::from(u8::from(i == j)) + theta.sin() * k[i][j] + (1.0 - theta.cos()) * k2[i][j]
-            })
-        })
-    };
-    let rotation =
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[i][c] * partial[c][j]).sum()));
-    let translation = std::array::from_fn(|c| (1.0 - a) * p.translation[c] + a * q.translation[c]);
-    Rigid { rotation, translation }
+    let (p, q) = (poses[k].to_isometry(), poses[k + 1].to_isometry());
+    // try_slerp declines only for two rotations equal to rounding (no arc to follow), where
+    // either is the answer; the shorter arc is taken otherwise, as a turn between frames is.
+    let rotation = p.rotation.try_slerp(&q.rotation, a, f64::EPSILON).unwrap_or(p.rotation);
+    Isometry3::from_parts(p.translation.vector.lerp(&q.translation.vector, a).into(), rotation).into()
 }
 
 /// File magic and format version of serialised models.

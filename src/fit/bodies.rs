@@ -380,8 +380,7 @@ fn track_body(
         .fold(0.0, f64::max);
     // The body frame: origin at the model's centre, x along the direction of travel.
     let heading = travel_heading(&poses, k, centre);
-    let (s, co) = heading.sin_cos();
-    let body_to_seed = Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: centre };
+    let body_to_seed = Rigid::from_yaw(heading, centre);
     let seed_to_body = body_to_seed.inverse();
     let mut extent_min_m = [f32::INFINITY; 3];
     let mut extent_max_m = [f32::NEG_INFINITY; 3];
@@ -516,8 +515,7 @@ fn travel_heading(poses: &[Rigid], k: usize, centre: [f64; 3]) -> f64 {
 
 /// A motion on the ground plane: rotation `yaw_rad` about z, then translation (x, y, 0).
 fn planar(x_m: f64, y_m: f64, yaw_rad: f64) -> Rigid {
-    let (s, c) = yaw_rad.sin_cos();
-    Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [x_m, y_m, 0.0] }
+    Rigid::from_yaw(yaw_rad, [x_m, y_m, 0.0])
 }
 
 /// The planar part of a motion: its heading change and horizontal translation.
@@ -629,8 +627,7 @@ fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [
         let at_edge = |c: &[f64]| poly_eval(c, edge) + poly_slope(c, edge) * (x - edge);
         let yaw = at_edge(&coeffs[2]);
         // Keep the observed tilt: the rotation's residual after removing its own yaw.
-        let (s, c) = (yaw - yaws[j]).sin_cos();
-        let turn = Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] };
+        let turn = Rigid::from_yaw(yaw - yaws[j], [0.0; 3]);
         let rotation = turn.compose(&poses[j]).rotation;
         let at = [at_edge(&coeffs[0]), at_edge(&coeffs[1]), pos[j][2]];
         let rotated = Rigid { rotation, translation: [0.0; 3] }.apply_f64(centre);

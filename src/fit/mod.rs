@@ -366,22 +366,14 @@ pub fn poses_relative_to_first(poses: &[[f64; 16]]) -> Result<Vec<Rigid>, FitErr
         if m[12].abs() > 1e-6 || m[13].abs() > 1e-6 || m[14].abs() > 1e-6 || (m[15] - 1.0).abs() > 1e-6 {
             return Err(bad("last row must be 0 0 0 1"));
         }
-        let rotation = [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]];
-        for i in 0..3 {
-            for j in 0..3 {
-                let dot: f64 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
-                if (dot - f64::from(u8::from(i == j))).abs() > 1e-3 {
-                    return Err(bad("rotation block is not orthonormal"));
-                }
-            }
+        let rotation = nalgebra::Matrix3::new(m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]);
+        if (rotation * rotation.transpose() - nalgebra::Matrix3::identity()).abs().max() > 1e-3 {
+            return Err(bad("rotation block is not orthonormal"));
         }
-        let r = &rotation;
-        let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
-        if det <= 0.0 {
+        if rotation.determinant() <= 0.0 {
             return Err(bad("rotation block is a reflection"));
         }
-        Ok(Rigid { rotation, translation: [m[3], m[7], m[11]] })
+        Ok(Rigid::from_rotation(&nalgebra::Rotation3::from_matrix_unchecked(rotation), [m[3], m[7], m[11]]))
     };
     let world = poses.iter().enumerate().map(|(k, m)| rigid(k, m)).collect::<Result<Vec<_>, _>>()?;
     let to_first = world[0].inverse();

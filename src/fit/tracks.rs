@@ -295,11 +295,7 @@ mod tests {
         let mut scene = Scene { frames: Vec::new(), clusters: Vec::new(), car_motion: Vec::new() };
         for k in 0..frames {
             let yaw = 0.02 * k as f64;
-            let (s, c) = yaw.sin_cos();
-            let motion = Rigid {
-                rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
-                translation: [0.8 * k as f64, 0.005 * (k * k) as f64, 0.0],
-            };
+            let motion = Rigid::from_yaw(yaw, [0.8 * k as f64, 0.005 * (k * k) as f64, 0.0]);
             let mut frame = box_surface(&mut rng, 600, [-5.0, 6.0, 0.0], [30.0, 0.5, 3.0]);
             frame.extend(box_surface(&mut rng, 400, [0.0, 0.0, 0.0], [4.2, 1.8, 1.5]).iter().map(|p| motion.apply(p)));
             scene.frames.push(frame);
