@@ -30,11 +30,11 @@ use std::collections::HashSet;
 use std::ops::ControlFlow;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
+use crate::model::MovingBody;
 
 use super::tracks::{DistanceScratch, TrackParams, cluster_subsample, mean_distance_m, moving_step};
 
@@ -77,42 +77,6 @@ impl Default for BodyParams {
             member_voxel_m: 0.15,
             smooth_outlier_m: 0.3,
         }
-    }
-}
-
-/// One moving object over the whole sequence.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MovingBody {
-    /// Identity of the body within its sequence (0, 1, ... in the order found).
-    pub id: u32,
-    /// Per frame: the body-to-fit-coordinates motion (the body frame has its origin at the centre
-    /// of the body's points and its x axis along its direction of travel, z up).
-    pub poses: Vec<Rigid>,
-    /// Per frame: whether the body was seen (clusters associated) or its pose predicted.
-    pub observed: Vec<bool>,
-    /// Per frame: the body's points (fit coordinates), thinned to one per
-    /// [`BodyParams::member_voxel_m`] cube; empty where it was not seen.
-    pub members: Vec<Vec<Point>>,
-    /// Per frame: the number of the frame's fitted points on the body (before thinning).
-    pub member_counts: Vec<usize>,
-    /// The box holding the body's model points, in body coordinates: lower corner (m).
-    pub extent_min_m: [f32; 3],
-    /// Upper corner (m).
-    pub extent_max_m: [f32; 3],
-}
-
-impl MovingBody {
-    /// Whether the body belongs to a sequence of `frames` frames.
-    pub fn fits(&self, frames: usize) -> bool {
-        self.poses.len() == frames
-            && self.observed.len() == frames
-            && self.members.len() == frames
-            && self.member_counts.len() == frames
-    }
-
-    /// The frames the body was seen in.
-    pub fn frames_seen(&self) -> Vec<usize> {
-        (0..self.observed.len()).filter(|&k| self.observed[k]).collect()
     }
 }
 

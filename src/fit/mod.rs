@@ -5,22 +5,21 @@
 //! reports progress through a callback which may also cancel between iterations.
 
 pub mod bodies;
-pub mod encoding;
 pub mod nsfp;
 pub mod ntp;
-mod params;
 pub mod prepare;
 mod rigidity;
 pub mod tracks;
 
-pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
+pub use crate::model::PhaseTimes;
+pub use crate::model::params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
 
 use std::ops::ControlFlow;
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
-use crate::trajectory::{FitReport, FittedModel, TimeAxis};
+use crate::model::{FitReport, FittedModel, TimeAxis};
 
 /// A sequence to fit: T frames of points, each in its own sensor frame, and its time axis.
 #[derive(Debug, Clone)]
@@ -51,27 +50,6 @@ pub struct LossTerms {
     pub rigidity: f64,
     /// Weighted total that the optimiser minimises.
     pub total: f64,
-}
-
-/// Wall time spent per phase of a fit (s), summed over iterations: what `mbnt bench` prints.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PhaseTimes {
-    /// MLP forward passes (input encoding included).
-    pub mlp_forward_s: f64,
-    /// MLP backward passes.
-    pub mlp_backward_s: f64,
-    /// Truncated Chamfer: nearest neighbours both ways, value and gradient.
-    pub nearest_s: f64,
-    /// Cycle consistency outside the MLP: moving points, the loss, chaining gradients.
-    pub cycle_s: f64,
-    /// Multi-body loss: subsampling, pairwise distances, power iteration, gradient.
-    pub multibody_s: f64,
-    /// Adam steps.
-    pub optimiser_s: f64,
-    /// Floating-point operations of the MLP passes (GFLOP), for achieved GFLOP/s.
-    pub mlp_gflop: f64,
-    /// The whole loop; the rest (total minus the phases) is bookkeeping and checkpoints.
-    pub total_s: f64,
 }
 
 /// What the fitting loop reports after each iteration.
