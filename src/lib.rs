@@ -11,16 +11,18 @@
 //! - [`losses`]: truncated Chamfer, cycle consistency, multi-body score, value and gradient.
 //! - [`fit`]: the NTP/MBNT and NSFP/MBNSF fitting loops, their parameters and progress.
 //! - [`odometry`]: LiDAR odometry, the sensor poses of a sequence recorded without them.
-//! - [`trajectory`]: a fitted model answers where a point is at any time.
+//! - [`model`]: a fitted model answers where a point is at any time; its versioned file format
+//!   and every type a model file holds (fit report, parameters, moving bodies, rigid tracks).
 //! - [`metrics`]: scene-flow and long-term trajectory metrics.
 //! - [`io`]: PLY, PCD, KITTI `.bin`, NumPy readers; `.npy`/`.npz` writers.
 //! - [`sim`]: synthetic LiDAR sequences with exact ground truth.
 //! - [`store`], [`jobs`], [`http`]: the service (SQLite + files, job queue, axum routes).
 //!
 //! # Dependency direction
-//! `geometry`, `nn`, `losses`, `odometry`, `fit`, `trajectory`, `metrics` and `sim` are synchronous and
+//! `geometry`, `nn`, `losses`, `odometry`, `fit`, `model`, `metrics` and `sim` are synchronous and
 //! know nothing of tokio, axum, the store or the file system. `io` reads and writes bytes.
-//! `jobs` drives `fit` and uses `store`; `http` uses `jobs`, `store` and `trajectory` and never
+//! `fit` builds a `model` and imports its types; `model` imports nothing from `fit`.
+//! `jobs` drives `fit` and uses `store`; `http` uses `jobs`, `store` and `model` and never
 //! runs a fit itself.
 #![warn(missing_docs)]
 
@@ -32,8 +34,8 @@ pub mod io;
 pub mod jobs;
 pub mod losses;
 pub mod metrics;
+pub mod model;
 pub mod nn;
 pub mod odometry;
 pub mod sim;
 pub mod store;
-pub mod trajectory;

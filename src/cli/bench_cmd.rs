@@ -172,7 +172,7 @@ fn run_mode(
     method: Method,
     mode: Mode,
     iterations: Option<usize>,
-) -> anyhow::Result<(ModeResult, crate::trajectory::FitReport)> {
+) -> anyhow::Result<(ModeResult, crate::model::FitReport)> {
     let params = FitParams { mode: Some(mode), iterations, ..FitParams::default() }.check(method)?;
     let peak_rss_own = reset_peak_rss();
     let mut regular = Vec::new();
@@ -263,7 +263,7 @@ fn median(values: &mut [f64]) -> f64 {
 fn accuracy(
     sim: &SimSequence,
     sequence: &Sequence,
-    model: &crate::trajectory::FittedModel,
+    model: &crate::model::FittedModel,
     params: &ValidFitParams,
 ) -> anyhow::Result<(TrajectoryMetrics, TrajectoryMetrics)> {
     let t = sim.frames.len();

@@ -533,7 +533,7 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
         }
         ControlFlow::Continue(())
     })?;
-    let predict = |model: &crate::trajectory::FittedModel| -> anyhow::Result<Prediction> {
+    let predict = |model: &crate::model::FittedModel| -> anyhow::Result<Prediction> {
         let flows = model.scene_flow(&sequence.frames);
         let ts = &sim.timestamps_s;
         let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;

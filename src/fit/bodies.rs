@@ -35,11 +35,11 @@ use std::collections::HashSet;
 use std::ops::ControlFlow;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
+use crate::model::MovingBody;
 
 use super::tracks::{DistanceScratch, TrackParams, cluster_subsample, mean_distance_m, moving_step};
 
@@ -82,42 +82,6 @@ impl Default for BodyParams {
             member_voxel_m: 0.15,
             smooth_outlier_m: 0.3,
         }
-    }
-}
-
-/// One moving object over the whole sequence.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MovingBody {
-    /// Identity of the body within its sequence (0, 1, ... in the order found).
-    pub id: u32,
-    /// Per frame: the body-to-fit-coordinates motion (the body frame has its origin at the centre
-    /// of the body's points and its x axis along its direction of travel, z up).
-    pub poses: Vec<Rigid>,
-    /// Per frame: whether the body was seen (clusters associated) or its pose predicted.
-    pub observed: Vec<bool>,
-    /// Per frame: the body's points (fit coordinates), thinned to one per
-    /// [`BodyParams::member_voxel_m`] cube; empty where it was not seen.
-    pub members: Vec<Vec<Point>>,
-    /// Per frame: the number of the frame's fitted points on the body (before thinning).
-    pub member_counts: Vec<usize>,
-    /// The box holding the body's model points, in body coordinates: lower corner (m).
-    pub extent_min_m: [f32; 3],
-    /// Upper corner (m).
-    pub extent_max_m: [f32; 3],
-}
-
-impl MovingBody {
-    /// Whether the body belongs to a sequence of `frames` frames.
-    pub fn fits(&self, frames: usize) -> bool {
-        self.poses.len() == frames
-            && self.observed.len() == frames
-            && self.members.len() == frames
-            && self.member_counts.len() == frames
-    }
-
-    /// The frames the body was seen in.
-    pub fn frames_seen(&self) -> Vec<usize> {
-        (0..self.observed.len()).filter(|&k| self.observed[k]).collect()
     }
 }
 
@@ -420,8 +384,7 @@ fn track_body(
         .fold(0.0, f64::max);
     // The body frame: origin at the model's centre, x along the direction of travel.
     let heading = travel_heading(&poses, k, centre);
-    let (s, co) = heading.sin_cos();
-    let body_to_seed = Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: centre };
+    let body_to_seed = Rigid::from_yaw(heading, centre);
     let seed_to_body = body_to_seed.inverse();
     let mut extent_min_m = [f32::INFINITY; 3];
     let mut extent_max_m = [f32::NEG_INFINITY; 3];
@@ -581,8 +544,7 @@ fn travel_heading(poses: &[Rigid], k: usize, centre: [f64; 3]) -> f64 {
 
 /// A motion on the ground plane: rotation `yaw_rad` about z, then translation (x, y, 0).
 fn planar(x_m: f64, y_m: f64, yaw_rad: f64) -> Rigid {
-    let (s, c) = yaw_rad.sin_cos();
-    Rigid { rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], translation: [x_m, y_m, 0.0] }
+    Rigid::from_yaw(yaw_rad, [x_m, y_m, 0.0])
 }
 
 /// The planar part of a motion: its heading change and horizontal translation.
@@ -595,8 +557,7 @@ fn planar_part(m: &Rigid) -> Rigid {
 fn fraction_about(m: &Rigid, centre: [f64; 3], share: f64) -> Rigid {
     let moved = m.apply_f64(centre);
     let yaw = yaw_of(m) * share;
-    let (s, c) = yaw.sin_cos();
-    let turned = [c * centre[0] - s * centre[1], s * centre[0] + c * centre[1]];
+    let turned = Rigid::from_yaw(yaw, [0.0; 3]).apply_f64(centre);
     let target = [centre[0] + (moved[0] - centre[0]) * share, centre[1] + (moved[1] - centre[1]) * share];
     planar(target[0] - turned[0], target[1] - turned[1], yaw)
 }
@@ -709,8 +670,7 @@ fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [
         let at_edge = |c: &[f64]| c[0] + c[1] * dt;
         let (x, y, yaw) = (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]));
         // Keep the observed tilt: the rotation's residual after removing its own yaw.
-        let (s, co) = (yaw - yaws[j]).sin_cos();
-        let turn = Rigid { rotation: [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] };
+        let turn = Rigid::from_yaw(yaw - yaws[j], [0.0; 3]);
         let rotation = turn.compose(&poses[j]).rotation;
         let at = [x, y, pos[j][2]];
         let rotated = Rigid { rotation, translation: [0.0; 3] }.apply_f64(centre);
@@ -793,6 +753,31 @@ mod tests {
             .expect("never stopped")
     }
 
+    /// Which box a body is: the one whose frame-0 centre its frame-0 members surround.
+    fn box_of(s: &Scene, body: &MovingBody) -> usize {
+        let m0 = centroid(&body.members[0]);
+        let d = |i: usize| {
+            let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
+            (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
+        };
+        (0..3).min_by(|&a, &b| d(a).total_cmp(&d(b))).unwrap()
+    }
+
+    /// The largest distance (m) at frame `j` between a corner of box `b` carried from frame 0 by
+    /// the body and by the truth.
+    fn corner_error_m(s: &Scene, body: &MovingBody, b: usize, j: usize) -> f64 {
+        let motion = body.poses[j].compose(&body.poses[0].inverse());
+        let truth = s.truth[b][j].compose(&s.truth[b][0].inverse());
+        [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]]
+            .iter()
+            .map(|&corner| {
+                let p = s.truth[b][0].apply_f64(corner);
+                let (got, want) = (motion.apply_f64(p), truth.apply_f64(p));
+                (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt()
+            })
+            .fold(0.0, f64::max)
+    }
+
     #[test]
     fn straight_turning_and_accelerating_boxes_are_one_body_each_and_tracked_within_a_decimetre() {
         let s = scene(12);
@@ -801,28 +786,12 @@ mod tests {
         for body in &bodies {
             assert!(body.fits(12));
             assert!(body.observed.iter().all(|&o| o), "every box is seen in every frame");
-            // Which box: the one whose frame-0 corner the body's frame-0 members surround.
-            let m0 = centroid(&body.members[0]);
-            let b = (0..3)
-                .min_by(|&a, &b| {
-                    let d = |i: usize| {
-                        let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
-                        (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
-                    };
-                    d(a).total_cmp(&d(b))
-                })
-                .unwrap();
+            let b = box_of(&s, body);
             // Every corner of the box, carried from frame 0 by the body, lands within 0.1 m of
             // where the truth carries it, at every frame (resampled surfaces: 500 points a frame).
             for j in 0..12 {
-                let motion = body.poses[j].compose(&body.poses[0].inverse());
-                let truth = s.truth[b][j].compose(&s.truth[b][0].inverse());
-                for corner in [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]] {
-                    let p = s.truth[b][0].apply_f64(corner);
-                    let (got, want) = (motion.apply_f64(p), truth.apply_f64(p));
-                    let err = (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt();
-                    assert!(err < 0.1, "box {b} frame {j}: corner {err:.3} m off");
-                }
+                let err = corner_error_m(&s, body, b, j);
+                assert!(err < 0.1, "box {b} frame {j}: corner {err:.3} m off");
             }
             // Extent: the car's 4.2 x 1.8 x 1.5 m within the voxel size and sampling.
             let size: Vec<f32> = (0..3).map(|i| body.extent_max_m[i] - body.extent_min_m[i]).collect();
@@ -855,25 +824,10 @@ mod tests {
         assert!((2..=3).contains(&bodies.len()), "{} bodies", bodies.len());
         let mut found = [false; 3];
         for body in &bodies {
-            let motion = body.poses[1].compose(&body.poses[0].inverse());
-            let m0 = centroid(&body.members[0]);
-            let b = (0..3)
-                .min_by(|&a, &b| {
-                    let d = |i: usize| {
-                        let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
-                        (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
-                    };
-                    d(a).total_cmp(&d(b))
-                })
-                .unwrap();
+            let b = box_of(&s, body);
             found[b] = true;
-            let truth = s.truth[b][1].compose(&s.truth[b][0].inverse());
-            for corner in [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]] {
-                let p = s.truth[b][0].apply_f64(corner);
-                let (got, want) = (motion.apply_f64(p), truth.apply_f64(p));
-                let err = (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt();
-                assert!(err < 0.1, "box {b}: corner {err:.3} m off");
-            }
+            let err = corner_error_m(&s, body, b, 1);
+            assert!(err < 0.1, "box {b}: corner {err:.3} m off");
         }
         assert!(found[0] && found[1], "{found:?}");
         // The same pair with every box parked: no body.

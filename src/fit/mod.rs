@@ -5,22 +5,21 @@
 //! reports progress through a callback which may also cancel between iterations.
 
 pub mod bodies;
-pub mod encoding;
 pub mod nsfp;
 pub mod ntp;
-mod params;
 pub mod prepare;
 mod rigidity;
 pub mod tracks;
 
-pub use params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
+pub use crate::model::PhaseTimes;
+pub use crate::model::params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
 
 use std::ops::ControlFlow;
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
-use crate::trajectory::{FitReport, FittedModel, TimeAxis};
+use crate::model::{FitReport, FittedModel, TimeAxis};
 
 /// A sequence to fit: T frames of points, each in its own sensor frame, and its time axis.
 #[derive(Debug, Clone)]
@@ -51,27 +50,6 @@ pub struct LossTerms {
     pub rigidity: f64,
     /// Weighted total that the optimiser minimises.
     pub total: f64,
-}
-
-/// Wall time spent per phase of a fit (s), summed over iterations: what `mbnt bench` prints.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PhaseTimes {
-    /// MLP forward passes (input encoding included).
-    pub mlp_forward_s: f64,
-    /// MLP backward passes.
-    pub mlp_backward_s: f64,
-    /// Truncated Chamfer: nearest neighbours both ways, value and gradient.
-    pub nearest_s: f64,
-    /// Cycle consistency outside the MLP: moving points, the loss, chaining gradients.
-    pub cycle_s: f64,
-    /// Multi-body loss: subsampling, pairwise distances, power iteration, gradient.
-    pub multibody_s: f64,
-    /// Adam steps.
-    pub optimiser_s: f64,
-    /// Floating-point operations of the MLP passes (GFLOP), for achieved GFLOP/s.
-    pub mlp_gflop: f64,
-    /// The whole loop; the rest (total minus the phases) is bookkeeping and checkpoints.
-    pub total_s: f64,
 }
 
 /// What the fitting loop reports after each iteration.
@@ -371,22 +349,14 @@ pub fn poses_relative_to_first(poses: &[[f64; 16]]) -> Result<Vec<Rigid>, FitErr
         if m[12].abs() > 1e-6 || m[13].abs() > 1e-6 || m[14].abs() > 1e-6 || (m[15] - 1.0).abs() > 1e-6 {
             return Err(bad("last row must be 0 0 0 1"));
         }
-        let rotation = [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]];
-        for i in 0..3 {
-            for j in 0..3 {
-                let dot: f64 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
-                if (dot - f64::from(u8::from(i == j))).abs() > 1e-3 {
-                    return Err(bad("rotation block is not orthonormal"));
-                }
-            }
+        let rotation = nalgebra::Matrix3::new(m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]);
+        if (rotation * rotation.transpose() - nalgebra::Matrix3::identity()).abs().max() > 1e-3 {
+            return Err(bad("rotation block is not orthonormal"));
         }
-        let r = &rotation;
-        let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
-        if det <= 0.0 {
+        if rotation.determinant() <= 0.0 {
             return Err(bad("rotation block is a reflection"));
         }
-        Ok(Rigid { rotation, translation: [m[3], m[7], m[11]] })
+        Ok(Rigid::from_rotation(&nalgebra::Rotation3::from_matrix_unchecked(rotation), [m[3], m[7], m[11]]))
     };
     let world = poses.iter().enumerate().map(|(k, m)| rigid(k, m)).collect::<Result<Vec<_>, _>>()?;
     let to_first = world[0].inverse();

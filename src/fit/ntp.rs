@@ -11,7 +11,6 @@ use std::ops::ControlFlow;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::encoding::{encode_points, input_width};
 use std::time::Instant;
 
 use super::prepare::{PointSet, PreparedFrame};
@@ -20,6 +19,7 @@ use super::{FitError, LossTerms, PhaseTimes, Progress, ValidFitParams};
 use crate::geometry::Point;
 use crate::losses::chamfer::{ChamferScratch, truncated_chamfer};
 use crate::losses::cycle::mean_squared_difference;
+use crate::model::encoding::{encode_points, input_width};
 use crate::nn::adam::step_lr;
 use crate::nn::{Adam, Gradients, Mlp, Workspace};
 

@@ -5,7 +5,6 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use super::{FitError, Sequence, ValidFitParams};
 use crate::geometry::Point;
@@ -13,23 +12,7 @@ use crate::geometry::dbscan::{clusters, dbscan};
 use crate::geometry::ground::{FilterReport, GroundParamsError, PreprocessParams, preprocess};
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
-
-/// What preparation did to one frame.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct FrameReport {
-    /// Points received.
-    pub input_points: usize,
-    /// Points taken as ground and left out of the fit.
-    pub ground_points: usize,
-    /// Points beyond the range or height limits, left out of the fit.
-    pub out_of_range_points: usize,
-    /// Points the fit used.
-    pub fitted_points: usize,
-    /// DBSCAN clusters found (0 when the method has no rigidity term).
-    pub clusters: usize,
-    /// Points in clusters (the rest are DBSCAN noise).
-    pub clustered_points: usize,
-}
+use crate::model::FrameReport;
 
 /// A point set with its tree and clusters: a whole frame, or one random part of it.
 pub struct PointSet {

@@ -266,12 +266,12 @@ fn a_model_survives_serialisation_and_bad_bytes_are_an_error() {
         let model =
             fit_sequence(&sequence, method, &small_params(method, 3), &mut |_| ControlFlow::Continue(())).unwrap();
         let bytes = model.to_bytes();
-        let back = crate::trajectory::FittedModel::from_bytes(&bytes).unwrap();
+        let back = crate::model::FittedModel::from_bytes(&bytes).unwrap();
         assert!(back.to_bytes() == bytes, "a model must serialise back to the same bytes");
         let q = &sequence.frames[0][..10];
         assert_eq!(model.positions(q, 0.0, &[2.0]).unwrap(), back.positions(q, 0.0, &[2.0]).unwrap());
-        assert!(crate::trajectory::FittedModel::from_bytes(&bytes[..bytes.len() / 2]).is_err());
-        assert!(crate::trajectory::FittedModel::from_bytes(b"garbage").is_err());
+        assert!(crate::model::FittedModel::from_bytes(&bytes[..bytes.len() / 2]).is_err());
+        assert!(crate::model::FittedModel::from_bytes(b"garbage").is_err());
     }
 }
 
@@ -459,7 +459,7 @@ fn rigid_tracks_carry_a_moving_body_the_network_has_not_learnt_and_survive_seria
     assert!(model.report().rigid_tracks > 0 && model.report().rigid_tracks == model.tracks().len());
     let last = (frames - 1) as f64;
     let body_a = &sequence.frames[0][..1500];
-    let error = |m: &crate::trajectory::FittedModel| -> f64 {
+    let error = |m: &crate::model::FittedModel| -> f64 {
         let at = m.positions(body_a, 0.0, &[last]).unwrap();
         at.iter().zip(&truth[..1500]).map(|(p, q)| crate::geometry::knn::dist2(p, q).sqrt() as f64).sum::<f64>()
             / 1500.0
@@ -469,7 +469,7 @@ fn rigid_tracks_carry_a_moving_body_the_network_has_not_learnt_and_survive_seria
     assert!(tracked < 0.2 && tracked < alone / 3.0, "with tracks {tracked:.3} m, network alone {alone:.3} m");
 
     let bytes = model.to_bytes();
-    let back = crate::trajectory::FittedModel::from_bytes(&bytes).unwrap();
+    let back = crate::model::FittedModel::from_bytes(&bytes).unwrap();
     assert_eq!(back.tracks(), model.tracks());
     assert!(back.to_bytes() == bytes);
     assert_eq!(model.positions(body_a, 0.5, &[0.0, 3.2]).unwrap(), back.positions(body_a, 0.5, &[0.0, 3.2]).unwrap());

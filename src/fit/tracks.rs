@@ -20,11 +20,11 @@
 use std::ops::ControlFlow;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use crate::geometry::Point;
 use crate::geometry::knn::{KdTree, Nearest};
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
+use crate::model::RigidTrack;
 
 /// Parameters of the tracker; the defaults are what docs/benchmarks.md measured.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -57,25 +57,6 @@ impl Default for TrackParams {
             icp_iterations: 30,
             max_track_points: 512,
         }
-    }
-}
-
-/// One moving cluster of one frame and its rigid motion to every frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RigidTrack {
-    /// The frame the cluster was found in.
-    pub frame: usize,
-    /// The cluster's points (fit coordinates): queries near them follow this track.
-    pub points: Vec<Point>,
-    /// Motion (fit coordinates) from frame `frame` to frame j, for every j; identity at `frame`.
-    pub motions: Vec<Rigid>,
-}
-
-impl RigidTrack {
-    /// Whether the track belongs to a sequence of `frames` frames: found in one of them, with a
-    /// motion to each.
-    pub fn fits(&self, frames: usize) -> bool {
-        self.frame < frames && self.motions.len() == frames
     }
 }
 
@@ -295,11 +276,7 @@ mod tests {
         let mut scene = Scene { frames: Vec::new(), clusters: Vec::new(), car_motion: Vec::new() };
         for k in 0..frames {
             let yaw = 0.02 * k as f64;
-            let (s, c) = yaw.sin_cos();
-            let motion = Rigid {
-                rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
-                translation: [0.8 * k as f64, 0.005 * (k * k) as f64, 0.0],
-            };
+            let motion = Rigid::from_yaw(yaw, [0.8 * k as f64, 0.005 * (k * k) as f64, 0.0]);
             let mut frame = box_surface(&mut rng, 600, [-5.0, 6.0, 0.0], [30.0, 0.5, 3.0]);
             frame.extend(box_surface(&mut rng, 400, [0.0, 0.0, 0.0], [4.2, 1.8, 1.5]).iter().map(|p| motion.apply(p)));
             scene.frames.push(frame);

@@ -1,15 +1,23 @@
 //! Rigid transforms of point clouds: the least-squares fit for corresponding points (Horn's
 //! quaternion method) and point-to-point ICP on top of it.
 //!
-//! The arithmetic is f64: fits sum tens of thousands of products of metric coordinates, and the
-//! result is only a 3 x 4 matrix, so precision costs nothing here.
+//! The arithmetic is f64 and goes through nalgebra: fits sum tens of thousands of products of
+//! metric coordinates, and the result is only a 3 x 4 matrix, so precision costs nothing here.
 
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3,
+};
 use serde::{Deserialize, Serialize};
 
 use super::Point;
 use super::knn::{KdTree, Nearest};
 
 /// A proper rigid motion x ↦ R x + t (R orthonormal, det R = +1), metric (m).
+///
+/// The fields are the model files' layout (`{"rotation": [[..], [..], [..]], "translation": [..]}`)
+/// and hold R as given, so that poses read from a file are applied exactly as written; the
+/// algebra (compose, inverse, interpolation) goes through [`Rigid::to_isometry`], whose unit
+/// quaternion keeps every product a rotation.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Rigid {
     /// Rotation matrix R, row-major.
@@ -24,10 +32,46 @@ impl Default for Rigid {
     }
 }
 
+impl From<Isometry3<f64>> for Rigid {
+    fn from(isometry: Isometry3<f64>) -> Self {
+        Self::from_rotation(&isometry.rotation.to_rotation_matrix(), isometry.translation.vector.into())
+    }
+}
+
+impl From<&Rigid> for Isometry3<f64> {
+    fn from(rigid: &Rigid) -> Self {
+        rigid.to_isometry()
+    }
+}
+
 impl Rigid {
     /// The identity motion.
     pub fn identity() -> Self {
         Self { rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3] }
+    }
+
+    /// The motion with rotation `rotation` (taken as is) and translation `translation` (m).
+    pub fn from_rotation(rotation: &Rotation3<f64>, translation: [f64; 3]) -> Self {
+        let m = rotation.matrix();
+        Self { rotation: std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)])), translation }
+    }
+
+    /// A turn of `yaw_rad` about z, then the translation `translation` (m).
+    pub fn from_yaw(yaw_rad: f64, translation: [f64; 3]) -> Self {
+        Self::from_rotation(&Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad), translation)
+    }
+
+    /// R as nalgebra's rotation type, exactly as stored (no re-orthonormalisation).
+    pub fn rotation_matrix(&self) -> Rotation3<f64> {
+        Rotation3::from_matrix_unchecked(Matrix3::from_row_slice(self.rotation.as_flattened()))
+    }
+
+    /// The motion as an isometry with a unit-quaternion rotation. The quaternion is normalised,
+    /// so a stored R that is orthonormal only to its rounding (or to the digits of a pose file)
+    /// becomes an exact rotation, and compositions of isometries stay rotations.
+    pub fn to_isometry(&self) -> Isometry3<f64> {
+        let q = UnitQuaternion::from_rotation_matrix(&self.rotation_matrix());
+        Isometry3::from_parts(Translation3::from(self.translation), UnitQuaternion::new_normalize(q.into_inner()))
     }
 
     /// Applies the motion to a point: R p + t, computed in f64 and rounded to f32.
@@ -38,54 +82,23 @@ impl Rigid {
 
     /// Applies the motion to an f64 point.
     pub fn apply_f64(&self, p: [f64; 3]) -> [f64; 3] {
-        let r = &self.rotation;
-        let t = &self.translation;
-        [
-            r[0][0] * p[0] + r[0][1] * p[1] + r[0][2] * p[2] + t[0],
-            r[1][0] * p[0] + r[1][1] * p[1] + r[1][2] * p[2] + t[1],
-            r[2][0] * p[0] + r[2][1] * p[1] + r[2][2] * p[2] + t[2],
-        ]
+        (self.rotation_matrix() * Vector3::from(p) + Vector3::from(self.translation)).into()
     }
 
     /// `a.compose(&b)` is the motion x ↦ a(b(x)): `b` first, then `a` (the matrix product a b).
     pub fn compose(&self, other: &Rigid) -> Rigid {
-        let a = &self.rotation;
-        let b = &other.rotation;
-        let mut rotation = [[0.0; 3]; 3];
-        for (i, row) in rotation.iter_mut().enumerate() {
-            for (j, v) in row.iter_mut().enumerate() {
-                *v = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
-            }
-        }
-        let translation = self.apply_f64(other.translation);
-        Rigid { rotation, translation }
+        (self.to_isometry() * other.to_isometry()).into()
     }
 
     /// The inverse motion x ↦ Rᵀ (x − t).
     pub fn inverse(&self) -> Rigid {
-        let r = &self.rotation;
-        let rotation = [[r[0][0], r[1][0], r[2][0]], [r[0][1], r[1][1], r[2][1]], [r[0][2], r[1][2], r[2][2]]];
-        let t = &self.translation;
-        let translation = [
-            -(rotation[0][0] * t[0] + rotation[0][1] * t[1] + rotation[0][2] * t[2]),
-            -(rotation[1][0] * t[0] + rotation[1][1] * t[1] + rotation[1][2] * t[2]),
-            -(rotation[2][0] * t[0] + rotation[2][1] * t[1] + rotation[2][2] * t[2]),
-        ];
-        Rigid { rotation, translation }
+        self.to_isometry().inverse().into()
     }
 
     /// The rotation of a unit quaternion (w, x, y, z) with zero translation.
     pub fn from_quaternion(q: [f64; 4]) -> Rigid {
-        let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-        let (w, x, y, z) = (q[0] / n, q[1] / n, q[2] / n, q[3] / n);
-        Rigid {
-            rotation: [
-                [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-                [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-                [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
-            ],
-            translation: [0.0; 3],
-        }
+        let q = UnitQuaternion::new_normalize(Quaternion::new(q[0], q[1], q[2], q[3]));
+        Self::from_rotation(&q.to_rotation_matrix(), [0.0; 3])
     }
 
     /// The motion as a row-major 4 x 4 matrix (the API's layout).
@@ -99,8 +112,7 @@ impl Rigid {
 
     /// Rotation angle of R (rad, in [0, π]).
     pub fn angle_rad(&self) -> f64 {
-        let r = &self.rotation;
-        ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0).acos()
+        self.rotation_matrix().angle()
     }
 }
 
@@ -111,117 +123,57 @@ impl Rigid {
 /// rotation is not determined (fewer than three non-collinear points: all points coincide or lie
 /// on one line).
 pub fn fit_rigid(src: &[Point], dst: &[Point]) -> Option<Rigid> {
+    fit_rigid_points(src, dst)
+}
+
+/// [`fit_rigid`] for points of any float width (f32 clouds; f64 in the tests, where the fit's
+/// own accuracy is visible without the rounding of f32 inputs).
+fn fit_rigid_points<T: Copy + Into<f64>>(src: &[[T; 3]], dst: &[[T; 3]]) -> Option<Rigid> {
     if src.len() != dst.len() || src.is_empty() {
         return None;
     }
-    if src.iter().chain(dst).any(|p| p.iter().any(|c| !c.is_finite())) {
+    let as_f64 = |p: &[T; 3]| Vector3::new(p[0].into(), p[1].into(), p[2].into());
+    if src.iter().chain(dst).any(|p| !as_f64(p).iter().all(|c| c.is_finite())) {
         return None;
     }
     let n = src.len() as f64;
-    let mut cs = [0.0f64; 3];
-    let mut cd = [0.0f64; 3];
-    for (s, d) in src.iter().zip(dst) {
-        for k in 0..3 {
-            cs[k] += s[k] as f64;
-            cd[k] += d[k] as f64;
-        }
-    }
-    for k in 0..3 {
-        cs[k] /= n;
-        cd[k] /= n;
-    }
+    let cs = src.iter().map(as_f64).sum::<Vector3<f64>>() / n;
+    let cd = dst.iter().map(as_f64).sum::<Vector3<f64>>() / n;
     // Cross-covariance S_ab = Σ (src_a − c_src)(dst_b − c_dst), from centred coordinates for accuracy.
-    let mut s = [[0.0f64; 3]; 3];
+    let mut s = Matrix3::<f64>::zeros();
     let mut spread = 0.0f64;
     for (p, q) in src.iter().zip(dst) {
-        let a = [p[0] as f64 - cs[0], p[1] as f64 - cs[1], p[2] as f64 - cs[2]];
-        let b = [q[0] as f64 - cd[0], q[1] as f64 - cd[1], q[2] as f64 - cd[2]];
-        for i in 0..3 {
-            for j in 0..3 {
-                s[i][j] += a[i] * b[j];
-            }
-        }
-        spread += a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + b[0] * b[0] + b[1] * b[1] + b[2] * b[2];
+        let a = as_f64(p) - cs;
+        let b = as_f64(q) - cd;
+        s += a * b.transpose();
+        spread += a.norm_squared() + b.norm_squared();
     }
-    let (sxx, sxy, sxz) = (s[0][0], s[0][1], s[0][2]);
-    let (syx, syy, syz) = (s[1][0], s[1][1], s[1][2]);
-    let (szx, szy, szz) = (s[2][0], s[2][1], s[2][2]);
-    // Horn (1987): the optimal unit quaternion is the leading eigenvector of this symmetric matrix.
-    let nm = [
-        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
-        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ];
-    let (values, vectors) = jacobi_eigen4(nm);
+    let (sxx, sxy, sxz) = (s[(0, 0)], s[(0, 1)], s[(0, 2)]);
+    let (syx, syy, syz) = (s[(1, 0)], s[(1, 1)], s[(1, 2)]);
+    let (szx, szy, szz) = (s[(2, 0)], s[(2, 1)], s[(2, 2)]);
+    // Horn (1987): the optimal unit quaternion (w, x, y, z) is the leading eigenvector of this
+    // symmetric matrix; an eigenvector is a unit quaternion, so R is a proper rotation.
+    #[rustfmt::skip]
+    let horn = Matrix4::new(
+        sxx + syy + szz, syz - szy, szx - sxz, sxy - syx,
+        syz - szy, sxx - syy - szz, sxy + syx, szx + sxz,
+        szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy,
+        sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz,
+    );
+    let eigen = SymmetricEigen::new(horn);
     let mut order = [0usize, 1, 2, 3];
-    order.sort_by(|&a, &b| values[b].total_cmp(&values[a]));
+    order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
     // Collinear or coincident points leave a tie between the two largest eigenvalues (a free
     // rotation about the line). The gap scales with the spread Σ|a|² + |b|²; 1e-9 relative sits far
     // above f64 round-off (~1e-15) and far below any well-posed configuration.
-    let gap = values[order[0]] - values[order[1]];
+    let gap = eigen.eigenvalues[order[0]] - eigen.eigenvalues[order[1]];
     let well_posed = gap > 1e-9 * spread;
     if !well_posed {
         return None;
     }
-    let e = order[0];
-    let q = [vectors[0][e], vectors[1][e], vectors[2][e], vectors[3][e]];
-    let mut rigid = Rigid::from_quaternion(q);
-    let rc = rigid.apply_f64(cs);
-    rigid.translation = [cd[0] - rc[0], cd[1] - rc[1], cd[2] - rc[2]];
-    Some(rigid)
-}
-
-/// Eigen-decomposition of a symmetric 4 x 4 matrix by cyclic Jacobi rotations: eigenvalues and
-/// the eigenvectors as the columns of the second matrix. Converges quadratically; 50 sweeps is
-/// a bound never reached in practice.
-#[allow(clippy::needless_range_loop)] // index form mirrors the rotation formulas
-fn jacobi_eigen4(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
-    let mut v = [[0.0f64; 4]; 4];
-    for (i, row) in v.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    for _ in 0..50 {
-        let off: f64 = (0..4)
-            .flat_map(|i| (0..4).filter(move |&j| j != i).map(move |j| (i, j)))
-            .map(|(i, j)| a[i][j] * a[i][j])
-            .sum();
-        let diag: f64 = (0..4).map(|i| a[i][i] * a[i][i]).sum();
-        if off <= 1e-30 * diag || off == 0.0 {
-            break;
-        }
-        for p in 0..3 {
-            for q in p + 1..4 {
-                if a[p][q] == 0.0 {
-                    continue;
-                }
-                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..4 {
-                    let akp = a[k][p];
-                    let akq = a[k][q];
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
-                }
-                for k in 0..4 {
-                    let apk = a[p][k];
-                    let aqk = a[q][k];
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
-                }
-                for row in v.iter_mut() {
-                    let vp = row[p];
-                    let vq = row[q];
-                    row[p] = c * vp - s * vq;
-                    row[q] = s * vp + c * vq;
-                }
-            }
-        }
-    }
-    ([a[0][0], a[1][1], a[2][2], a[3][3]], v)
+    let v = eigen.eigenvectors.column(order[0]);
+    let rotation = UnitQuaternion::new_normalize(Quaternion::new(v[0], v[1], v[2], v[3])).to_rotation_matrix();
+    Some(Rigid::from_rotation(&rotation, (cd - rotation * cs).into()))
 }
 
 /// Point-to-point ICP: refines `init` so that `src` moved by it lies on `dst`.
@@ -310,11 +262,6 @@ mod tests {
         }
     }
 
-    fn det(r: &[[f64; 3]; 3]) -> f64 {
-        r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
-    }
-
     #[test]
     fn fit_rigid_recovers_a_random_rigid_motion() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
@@ -327,8 +274,54 @@ mod tests {
             let fit = fit_rigid(&src, &dst).unwrap();
             // The only error source is the f32 rounding of dst (~1e-6 m at 10 m): 1e-5 bounds it.
             assert_close(&fit, &truth, 1e-5);
-            assert!((det(&fit.rotation) - 1.0).abs() < 1e-12);
+            assert!((fit.rotation_matrix().matrix().determinant() - 1.0).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn fit_rigid_recovers_a_random_rigid_motion_exactly_from_f64_points() {
+        // Without the f32 rounding of the inputs the fit's own error shows: f64 round-off only.
+        let mut rng = ChaCha8Rng::seed_from_u64(14);
+        for _ in 0..20 {
+            let truth = random_rigid(&mut rng, std::f64::consts::PI, 10.0);
+            let src: Vec<[f64; 3]> = (0..200)
+                .map(|_| [rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0), rng.random_range(-2.0..2.0)])
+                .collect();
+            let dst: Vec<[f64; 3]> = src.iter().map(|&p| truth.apply_f64(p)).collect();
+            let fit = fit_rigid_points(&src, &dst).unwrap();
+            assert_close(&fit, &truth, 1e-9);
+        }
+    }
+
+    #[test]
+    fn compositions_of_many_motions_stay_rotations() {
+        let mut rng = ChaCha8Rng::seed_from_u64(15);
+        let mut chain = Rigid::identity();
+        for _ in 0..1000 {
+            chain = random_rigid(&mut rng, std::f64::consts::PI, 10.0).compose(&chain);
+        }
+        let r = chain.rotation_matrix().into_inner();
+        assert!((r.determinant() - 1.0).abs() < 1e-9, "{r}");
+        assert!((r.transpose() * r - Matrix3::identity()).abs().max() < 1e-9, "{r}");
+        // The inverse undoes the whole chain.
+        assert_close(&chain.inverse().compose(&chain), &Rigid::identity(), 1e-9);
+    }
+
+    #[test]
+    fn isometries_convert_both_ways() {
+        let mut rng = ChaCha8Rng::seed_from_u64(16);
+        let a = random_rigid(&mut rng, 3.0, 5.0);
+        assert_close(&Rigid::from(a.to_isometry()), &a, 1e-12);
+        let p = [1.5, -2.0, 0.25];
+        let q = a.to_isometry() * nalgebra::Point3::from(p);
+        let r = a.apply_f64(p);
+        for k in 0..3 {
+            assert!((q[k] - r[k]).abs() < 1e-12);
+        }
+        let yaw = Rigid::from_yaw(0.3, [1.0, 2.0, 3.0]);
+        let (s, c) = 0.3f64.sin_cos();
+        assert_eq!(yaw.rotation, [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]);
+        assert_eq!(yaw.translation, [1.0, 2.0, 3.0]);
     }
 
     #[test]
@@ -337,7 +330,7 @@ mod tests {
         let src: Vec<Point> = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [1.0, 1.0, 0.0]];
         let dst: Vec<Point> = src.iter().map(|p| [-p[0], p[1], p[2]]).collect();
         let fit = fit_rigid(&src, &dst).unwrap();
-        assert!((det(&fit.rotation) - 1.0).abs() < 1e-12);
+        assert!((fit.rotation_matrix().matrix().determinant() - 1.0).abs() < 1e-12);
     }
 
     #[test]

@@ -21,8 +21,8 @@ use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
 use crate::jobs::JobQueue;
+use crate::model::QueryError;
 use crate::store::{CancelOutcome, JobFilter, JobProgress, JobRecord, JobStatus, rfc3339};
-use crate::trajectory::QueryError;
 
 /// A job as the API shows it.
 #[derive(Debug, Serialize, PartialEq)]

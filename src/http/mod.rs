@@ -26,8 +26,8 @@ use tokio::sync::watch;
 use uuid::Uuid;
 
 use crate::jobs::{Fitter, JobQueue, WorkerPool};
+use crate::model::FittedModel;
 use crate::store::{SqliteStore, Store};
-use crate::trajectory::FittedModel;
 pub use error::ApiError;
 
 /// The OpenAPI 3.1 document, served at `/openapi.yaml`.

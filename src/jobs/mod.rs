@@ -18,8 +18,8 @@ use tokio::sync::watch;
 use uuid::Uuid;
 
 use crate::fit::{FitError, Method, Progress, Sequence, ValidFitParams, fit_sequence};
+use crate::model::FittedModel;
 use crate::store::{CancelOutcome, JobProgress, JobRecord, JobStatus, Store, StoreError, now_ms};
-use crate::trajectory::FittedModel;
 
 pub use worker::{Worker, WorkerPool};
 

@@ -5,7 +5,7 @@
 //! - `mbnt.sqlite3` (+ WAL files): the database (see [`super::sqlite`]).
 //! - `sequences/{id}/frame_{k:05}.f32`: frame k of a sequence ([`write_frame`] format).
 //! - `staging/{uuid}/`: a sequence being uploaded; renamed into `sequences/` when complete.
-//! - `models/{job_id}.mbnt`: a fitted model ([`crate::trajectory::FittedModel::to_bytes`]).
+//! - `models/{job_id}.mbnt`: a fitted model ([`crate::model::FittedModel::to_bytes`]).
 //! - `tmp/`: raw upload parts while they stream in.
 
 use std::fs::{self, File};

@@ -156,7 +156,7 @@ pub struct JobRecord {
 pub enum JobOutcome<'a> {
     /// The fit produced this serialised model.
     Succeeded {
-        /// [`crate::trajectory::FittedModel::to_bytes`] of the model.
+        /// [`crate::model::FittedModel::to_bytes`] of the model.
         model: &'a [u8],
     },
     /// The fit failed with this message.

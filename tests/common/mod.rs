@@ -12,7 +12,7 @@ use std::time::Duration;
 use mbnt::fit::{FitError, LossTerms, Method, Progress, Sequence, ValidFitParams};
 use mbnt::http::{Limits, Service, ServiceConfig};
 use mbnt::jobs::{CoreFitter, Fitter};
-use mbnt::trajectory::FittedModel;
+use mbnt::model::FittedModel;
 use serde_json::{Value, json};
 
 /// Reports `steps` iterations of `step` each (stopping on `Break`), then runs the real fit.

@@ -2,143 +2,40 @@
 //!
 //! Times are in the sequence's own axis: its timestamps in seconds when it has them, frame
 //! indices 0..T-1 otherwise. Positions at time s are in the sensor frame of the sweep at s.
+//!
+//! # Layout
+//! - this module: [`FittedModel`] and its queries (the network, the still world, moving bodies
+//!   and rigid tracks);
+//! - `time`: [`TimeAxis`] and [`QueryError`]; `poses`: pose interpolation between frames;
+//!   `networks`: evaluating the fitted networks (velocity sums, Euler through pair flows);
+//! - `format`: the versioned model file ([`FittedModel::to_bytes`], [`FittedModel::from_bytes`]);
+//! - `objects`: [`MovingBody`] and [`RigidTrack`]; `report`: [`FitReport`] and its parts;
+//! - [`params`]: the hyper-parameters a model is fitted with (its report records them);
+//! - [`encoding`]: the networks' input encoding.
+//!
+//! The model owns every type a model file holds. `fit` builds models and imports from here; this
+//! module imports nothing from `fit`, so the two do not depend on each other in a cycle.
 
-use serde::{Deserialize, Serialize};
+pub mod encoding;
+mod format;
+mod networks;
+mod objects;
+pub mod params;
+mod poses;
+mod report;
+mod time;
 
-use crate::fit::Method;
-use crate::fit::bodies::MovingBody;
-use crate::fit::encoding::encode_points;
-use crate::fit::prepare::FrameReport;
-use crate::fit::tracks::RigidTrack;
+pub use objects::{MovingBody, RigidTrack};
+pub use report::{FitReport, FrameReport, PhaseTimes};
+pub use time::{QueryError, TimeAxis};
+
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
-use crate::nn::{Mlp, Workspace};
-
-/// Maps the sequence's time axis to fractional frame indices, piecewise linearly.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TimeAxis {
-    /// Timestamps (s) per frame, or `None` when times are frame indices.
-    timestamps_s: Option<Vec<f64>>,
-    frames: usize,
-}
-
-/// A query that cannot be answered.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum QueryError {
-    /// A time outside [t_0, t_{T-1}] (or not finite).
-    #[error("time {time} is outside the sequence's time range [{first}, {last}]")]
-    TimeOutOfRange {
-        /// The offending time.
-        time: f64,
-        /// First time of the sequence.
-        first: f64,
-        /// Last time of the sequence.
-        last: f64,
-    },
-    /// A query point with a non-finite coordinate.
-    #[error("point {index} has a non-finite coordinate")]
-    NonFinitePoint {
-        /// Index of the point in the query.
-        index: usize,
-    },
-}
-
-impl TimeAxis {
-    /// A time axis over `frames` frames, in seconds when `timestamps_s` is given.
-    pub fn new(timestamps_s: Option<Vec<f64>>, frames: usize) -> Self {
-        Self { timestamps_s, frames }
-    }
-
-    /// Number of frames T.
-    pub fn frames(&self) -> usize {
-        self.frames
-    }
-
-    /// The timestamps, when the axis has them.
-    pub fn timestamps_s(&self) -> Option<&[f64]> {
-        self.timestamps_s.as_deref()
-    }
-
-    /// The time of frame `k` on this axis.
-    pub fn frame_time(&self, k: usize) -> f64 {
-        match &self.timestamps_s {
-            Some(ts) => ts[k],
-            None => k as f64,
-        }
-    }
-
-    /// The fractional frame index of `time` (linear between neighbouring frames).
-    pub fn to_frame_index(&self, time: f64) -> Result<f64, QueryError> {
-        let first = self.frame_time(0);
-        let last = self.frame_time(self.frames - 1);
-        if !time.is_finite() || time < first || time > last {
-            return Err(QueryError::TimeOutOfRange { time, first, last });
-        }
-        let Some(ts) = &self.timestamps_s else {
-            return Ok(time);
-        };
-        // The last k with ts[k] <= time, so that ts[k] <= time < ts[k + 1].
-        let k = ts.partition_point(|&t| t <= time).saturating_sub(1).min(self.frames - 2);
-        Ok(k as f64 + (time - ts[k]) / (ts[k + 1] - ts[k]))
-    }
-}
-
-/// The fitted network(s) behind a model.
-#[derive(Debug, Clone)]
-enum Motion {
-    /// One trajectory network (NTP, MBNT): input [x, y, z, time embedding], output the
-    /// velocities v_0..v_{T-2}.
-    Trajectory(Mlp<f32>),
-    /// Per pair k -> k+1 a forward flow f_k and a backward flow g_k (NSFP, MBNSF).
-    PairFlows {
-        /// f_k, k = 0..T-2.
-        forward: Vec<Mlp<f32>>,
-        /// g_k, k = 0..T-2.
-        backward: Vec<Mlp<f32>>,
-    },
-}
-
-/// What the fit did, kept with the model so that users can see it.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct FitReport {
-    /// Per frame: points received, removed as ground or out of range, fitted, clusters.
-    pub frames: Vec<FrameReport>,
-    /// Optimiser iterations run (summed over pairs for pair-wise methods).
-    pub iterations: usize,
-    /// Iteration of the selected checkpoint (trajectory methods).
-    pub best_iteration: Option<usize>,
-    /// Validation loss of the selected checkpoint (trajectory methods).
-    pub best_validation_loss: Option<f64>,
-    /// Iterations run per pair (pair-wise methods; early stopping may end a pair sooner).
-    pub iterations_per_pair: Vec<usize>,
-    /// Wall time of the fit (s).
-    pub fit_seconds: f64,
-    /// Wall time per phase of the trajectory loop (zero for pair-wise methods).
-    #[serde(default)]
-    pub phase_times: crate::fit::PhaseTimes,
-    /// The checked hyper-parameters the fit ran with.
-    #[serde(default)]
-    pub params: Option<crate::fit::ValidFitParams>,
-    /// Moving clusters found and followed by rigid tracks (`rigid_tracks`), summed over frames.
-    #[serde(default)]
-    pub rigid_tracks: usize,
-    /// Wall time of finding and following them, or the moving bodies (s), included in
-    /// `fit_seconds`.
-    #[serde(default)]
-    pub rigid_tracks_seconds: f64,
-    /// Moving bodies of the scene model (`moving_bodies`).
-    #[serde(default)]
-    pub moving_bodies: usize,
-    /// Points of the scene model the network answers, summed over frames (the rest of the
-    /// points on no body follow the still world).
-    #[serde(default)]
-    pub free_points: usize,
-    /// The sensor-to-world poses (row-major 4 x 4, frame 0 the identity) the LiDAR odometry
-    /// estimated, when the fit ran it (`odometry` parameter) instead of using given poses.
-    #[serde(default)]
-    pub estimated_poses: Option<Vec<[f64; 16]>>,
-}
+use crate::nn::Mlp;
+use networks::{Motion, euler_positions, trajectory_positions};
+use params::Method;
+use poses::pose_at;
 
 /// A fitted motion model of one sequence.
 #[derive(Debug, Clone)]
@@ -502,295 +399,18 @@ impl FittedModel {
             })
             .collect()
     }
-
-    /// Serialises the model: magic and version, a JSON header, then each network's own
-    /// versioned binary encoding behind a length prefix.
-    pub fn to_bytes(&self) -> Vec<u8> {
-        let (kind, networks): (&str, Vec<&Mlp<f32>>) = match &self.motion {
-            Motion::Trajectory(mlp) => ("trajectory", vec![mlp]),
-            Motion::PairFlows { forward, backward } => ("pair_flows", forward.iter().chain(backward).collect()),
-        };
-        let header = Header {
-            method: self.method,
-            time_axis: self.time_axis.clone(),
-            report: self.report.clone(),
-            kind: kind.to_string(),
-            networks: networks.len(),
-            frame_poses: self.frame_poses.clone(),
-            tracks: self.tracks.clone(),
-            bodies: self.bodies.clone(),
-            still_world: self.still_world,
-            free_points: self.free_points.clone(),
-        };
-        let header = serde_json::to_vec(&header).expect("a header always serialises");
-        let mut out = MODEL_MAGIC.to_vec();
-        out.extend((header.len() as u64).to_le_bytes());
-        out.extend(header);
-        for net in networks {
-            let bytes = net.to_bytes();
-            out.extend((bytes.len() as u64).to_le_bytes());
-            out.extend(bytes);
-        }
-        out
-    }
-
-    /// Reads a model written by [`FittedModel::to_bytes`].
-    pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
-        let mut rest = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
-        let mut take = |what: &str| -> Result<&[u8], String> {
-            if rest.len() < 8 {
-                return Err(format!("model file truncated before {what}"));
-            }
-            let len = u64::from_le_bytes(rest[..8].try_into().expect("8 bytes")) as usize;
-            if rest.len() - 8 < len {
-                return Err(format!("model file truncated inside {what}"));
-            }
-            let (body, tail) = rest[8..].split_at(len);
-            rest = tail;
-            Ok(body)
-        };
-        let header: Header =
-            serde_json::from_slice(take("the header")?).map_err(|e| format!("corrupt model header: {e}"))?;
-        let mut networks = Vec::with_capacity(header.networks.min(1024));
-        for i in 0..header.networks {
-            let body = take("a network")?;
-            networks.push(Mlp::<f32>::from_bytes(body).map_err(|e| format!("corrupt network {i}: {e}"))?);
-        }
-        let frames = header.time_axis.frames();
-        let motion = match header.kind.as_str() {
-            "trajectory" if networks.len() == 1 => Motion::Trajectory(networks.pop().expect("one network")),
-            "pair_flows" if networks.len() == 2 * frames.saturating_sub(1) => {
-                let backward = networks.split_off(frames - 1);
-                Motion::PairFlows { forward: networks, backward }
-            }
-            kind => {
-                return Err(format!(
-                    "model kind {kind:?} with {} networks does not fit {frames} frames",
-                    header.networks
-                ));
-            }
-        };
-        if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
-            return Err("model header: one pose per frame expected".into());
-        }
-        if header.tracks.iter().any(|t| !t.fits(frames)) {
-            return Err("model header: a rigid track does not cover the sequence's frames".into());
-        }
-        if header.bodies.iter().any(|b| !b.fits(frames)) {
-            return Err("model header: a moving body does not cover the sequence's frames".into());
-        }
-        if !header.free_points.is_empty() && header.free_points.len() != frames {
-            return Err("model header: free points of every frame expected".into());
-        }
-        if header.still_world && header.frame_poses.is_none() {
-            return Err("model header: a still world needs the frames' poses".into());
-        }
-        Ok(Self {
-            method: header.method,
-            time_axis: header.time_axis,
-            report: header.report,
-            motion,
-            frame_poses: header.frame_poses,
-            tracks: header.tracks,
-            bodies: header.bodies,
-            still_world: header.still_world,
-            free_points: header.free_points,
-        })
-    }
 }
-
-/// The serialised description of a model, ahead of its networks.
-#[derive(Serialize, Deserialize)]
-struct Header {
-    method: Method,
-    time_axis: TimeAxis,
-    report: FitReport,
-    kind: String,
-    networks: usize,
-    /// Absent in models fitted without poses.
-    #[serde(default)]
-    frame_poses: Option<Vec<Rigid>>,
-    /// Absent in models fitted without `rigid_tracks`.
-    #[serde(default)]
-    tracks: Vec<RigidTrack>,
-    /// Absent in models fitted without `moving_bodies` (and in files written before them).
-    #[serde(default)]
-    bodies: Vec<MovingBody>,
-    /// See [`FittedModel::still_world`]; absent (false) in earlier files.
-    #[serde(default)]
-    still_world: bool,
-    /// See [`FittedModel::free_points`]; absent (empty) in earlier files.
-    #[serde(default)]
-    free_points: Vec<Vec<(Point, bool)>>,
-}
-
-/// Trajectory position at fractional frame index `u` from one point's velocity row: the
-/// running sum of the velocities, linear within a step.
-fn trajectory_at(row: &[f32], u: f64) -> [f64; 3] {
-    let steps = row.len() / 3;
-    let whole = (u.floor() as usize).min(steps);
-    let frac = u - whole as f64;
-    let mut d = [0f64; 3];
-    for k in 0..whole {
-        for c in 0..3 {
-            d[c] += f64::from(row[3 * k + c]);
-        }
-    }
-    if whole < steps && frac > 0.0 {
-        for c in 0..3 {
-            d[c] += frac * f64::from(row[3 * whole + c]);
-        }
-    }
-    d
-}
-
-fn trajectory_positions(
-    mlp: &Mlp<f32>,
-    frames: usize,
-    points: &[Point],
-    u_obs: f64,
-    u_times: &[f64],
-    out: &mut [Point],
-) {
-    let mut input = Vec::new();
-    let mut workspace = Workspace::default();
-    encode_points(points, u_obs, frames, &mut input);
-    let velocities = mlp.forward(&input, points.len(), &mut workspace);
-    let width = 3 * (frames - 1);
-    for (i, p) in points.iter().enumerate() {
-        let row = &velocities[i * width..][..width];
-        let anchor = trajectory_at(row, u_obs);
-        for (j, &u) in u_times.iter().enumerate() {
-            let at = trajectory_at(row, u);
-            out[i * u_times.len() + j] = std::array::from_fn(|c| (f64::from(p[c]) + at[c] - anchor[c]) as f32);
-        }
-    }
-}
-
-/// Forward/backward Euler through pair flows. Within a step, motion is linear: a point at
-/// fractional index k + a moves by the fraction of f_k (forward) or g_k (backward) it has left.
-fn euler_positions(
-    forward: &[Mlp<f32>],
-    backward: &[Mlp<f32>],
-    points: &[Point],
-    u_obs: f64,
-    u_times: &[f64],
-    out: &mut [Point],
-) {
-    let n_times = u_times.len();
-    let mut workspace = Workspace::default();
-    // f or g of `current` scaled by `fraction`, added with `sign`.
-    let mut step = |net: &Mlp<f32>, current: &mut Vec<Point>, fraction: f64, sign: f32| {
-        let flow = net.forward(current.as_flattened(), current.len(), &mut workspace);
-        for (p, v) in current.iter_mut().zip(flow.chunks_exact(3)) {
-            for c in 0..3 {
-                p[c] += sign * fraction as f32 * v[c];
-            }
-        }
-    };
-    let steps = forward.len();
-    // One sweep forward through the later times (ascending) and one backward through the
-    // earlier ones (descending), so each crossed step is evaluated once.
-    let mut later: Vec<usize> = (0..n_times).filter(|&j| u_times[j] >= u_obs).collect();
-    let mut earlier: Vec<usize> = (0..n_times).filter(|&j| u_times[j] < u_obs).collect();
-    later.sort_by(|&a, &b| u_times[a].total_cmp(&u_times[b]));
-    earlier.sort_by(|&a, &b| u_times[b].total_cmp(&u_times[a]));
-    for (order, forward_in_time) in [(later, true), (earlier, false)] {
-        let mut current = points.to_vec();
-        let mut at = u_obs;
-        for j in order {
-            let u = u_times[j];
-            if forward_in_time {
-                while u - at > 1e-9 {
-                    let k = (at.floor() as usize).min(steps - 1);
-                    let next = ((k + 1) as f64).min(u);
-                    step(&forward[k], &mut current, next - at, 1.0);
-                    at = next;
-                }
-            } else {
-                while at - u > 1e-9 {
-                    let k = ((at.ceil() as usize).max(1) - 1).min(steps - 1);
-                    let prev = (k as f64).max(u);
-                    step(&backward[k], &mut current, at - prev, -1.0);
-                    at = prev;
-                }
-            }
-            for (i, p) in current.iter().enumerate() {
-                out[i * n_times + j] = *p;
-            }
-        }
-    }
-}
-
-/// The sensor-to-fit-frame transform at fractional frame index `u`: between two frames the
-/// rotation turns at a constant rate about one axis and the translation moves linearly.
-fn pose_at(poses: &[Rigid], u: f64) -> Rigid {
-    let k = (u.max(0.0).floor() as usize).min(poses.len() - 1);
-    let a = u - k as f64;
-    if k + 1 >= poses.len() || a <= 0.0 {
-        return poses[k];
-    }
-    let (p, q) = (&poses[k], &poses[k + 1]);
-    // Relative rotation D = Rp^T Rq as axis and angle, scaled by `a` (Rodrigues).
-    let d: [[f64; 3]; 3] =
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[c][i] * q.rotation[c][j]).sum()));
-    let cos = ((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
-    let angle = cos.acos();
-    let partial = if angle < 1e-12 {
-        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-    } else {
-        let s = 2.0 * angle.sin();
-        let axis = [(d[2][1] - d[1][2]) / s, (d[0][2] - d[2][0]) / s, (d[1][0] - d[0][1]) / s];
-        let theta = a * angle;
-        let k = [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]];
-        let k2: [[f64; 3]; 3] =
-            std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| k[i][c] * k[c][j]).sum()));
-        std::array::from_fn(|i| {
-            std::array::from_fn(|j| {
-                f64::from(u8::from(i == j)) + theta.sin() * k[i][j] + (1.0 - theta.cos()) * k2[i][j]
-            })
-        })
-    };
-    let rotation =
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|c| p.rotation[i][c] * partial[c][j]).sum()));
-    let translation = std::array::from_fn(|c| (1.0 - a) * p.translation[c] + a * q.translation[c]);
-    Rigid { rotation, translation }
-}
-
-/// File magic and format version of serialised models.
-const MODEL_MAGIC: &[u8] = b"MBNTMDL1";
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn poses_interpolate_by_constant_turn_rate_and_linear_translation() {
-        let yaw = |a: f64| Rigid {
-            rotation: [[a.cos(), -a.sin(), 0.0], [a.sin(), a.cos(), 0.0], [0.0, 0.0, 1.0]],
-            translation: [0.0; 3],
-        };
-        let mut end = yaw(std::f64::consts::FRAC_PI_2);
-        end.translation = [2.0, 4.0, -2.0];
-        let poses = [Rigid::identity(), end];
-        let mid = pose_at(&poses, 0.5);
-        let expected = yaw(std::f64::consts::FRAC_PI_4);
-        for i in 0..3 {
-            for j in 0..3 {
-                assert!((mid.rotation[i][j] - expected.rotation[i][j]).abs() < 1e-12, "{mid:?}");
-            }
-        }
-        assert_eq!(mid.translation, [1.0, 2.0, -1.0]);
-        assert_eq!(pose_at(&poses, 1.0), end);
-        assert_eq!(pose_at(&poses, 0.0), Rigid::identity());
-    }
-
-    #[test]
     fn points_on_a_rigid_track_follow_it_at_any_time_and_the_others_the_network() {
         use rand::SeedableRng;
         let frames = 4;
         let mut mlp = Mlp::<f32>::new(
-            &[crate::fit::encoding::input_width(frames), 8, 3 * (frames - 1)],
+            &[crate::model::encoding::input_width(frames), 8, 3 * (frames - 1)],
             &mut rand_chacha::ChaCha8Rng::seed_from_u64(1),
         );
         mlp.zero_output_layer(); // the network: nothing moves
@@ -820,11 +440,11 @@ mod tests {
     /// A 4-frame scene model with identity poses: a network that moves everything 1 m per frame
     /// along y, a body driving 1 m per frame along x (3 member points per frame), and one free
     /// point at (20, 0, 0) with a still neighbour at (20.5, 0, 0) in every frame.
-    fn scene_model() -> FittedModel {
+    pub(super) fn scene_model() -> FittedModel {
         use rand::SeedableRng;
         let frames = 4;
         let mut mlp = Mlp::<f32>::new(
-            &[crate::fit::encoding::input_width(frames), 8, 3 * (frames - 1)],
+            &[crate::model::encoding::input_width(frames), 8, 3 * (frames - 1)],
             &mut rand_chacha::ChaCha8Rng::seed_from_u64(1),
         );
         mlp.zero_output_layer();
@@ -890,40 +510,5 @@ mod tests {
         // The network alone moves everything along y.
         let alone = model.without_tracks().positions(&queries[3..], 1.0, &[3.0]).unwrap();
         assert_eq!(alone[0], [50.0, 52.0, 0.0]);
-    }
-
-    #[test]
-    fn a_model_file_from_before_the_scene_model_still_loads() {
-        // The previous version's header has no bodies, still world or free points.
-        let model = scene_model();
-        let bytes = model.to_bytes();
-        let rest = &bytes[MODEL_MAGIC.len()..];
-        let len = u64::from_le_bytes(rest[..8].try_into().unwrap()) as usize;
-        let mut header: serde_json::Value = serde_json::from_slice(&rest[8..8 + len]).unwrap();
-        for field in ["bodies", "still_world", "free_points"] {
-            header.as_object_mut().unwrap().remove(field).expect("the current header has the field");
-        }
-        header["report"].as_object_mut().unwrap().remove("moving_bodies");
-        header["report"].as_object_mut().unwrap().remove("free_points");
-        let old_header = serde_json::to_vec(&header).unwrap();
-        let mut old = MODEL_MAGIC.to_vec();
-        old.extend((old_header.len() as u64).to_le_bytes());
-        old.extend(old_header);
-        old.extend(&rest[8 + len..]);
-        let loaded = FittedModel::from_bytes(&old).unwrap();
-        assert!(loaded.bodies().is_empty());
-        // Without the scene model the network answers every point, as models of that version did.
-        let at = loaded.positions(&[[50.0, 50.0, 0.0]], 1.0, &[3.0]).unwrap();
-        assert_eq!(at[0], [50.0, 52.0, 0.0]);
-    }
-
-    #[test]
-    fn timestamps_map_piecewise_linearly_to_frame_indices() {
-        let axis = TimeAxis::new(Some(vec![10.0, 10.1, 10.3]), 3);
-        assert!((axis.to_frame_index(10.05).unwrap() - 0.5).abs() < 1e-9);
-        assert!((axis.to_frame_index(10.2).unwrap() - 1.5).abs() < 1e-9);
-        assert_eq!(axis.to_frame_index(10.3).unwrap(), 2.0);
-        assert!(axis.to_frame_index(10.31).is_err());
-        assert!(axis.to_frame_index(f64::NAN).is_err());
     }
 }

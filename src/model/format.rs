@@ -1,0 +1,167 @@
+//! The model file: magic and version, a JSON header, then each network's own versioned binary
+//! encoding behind a length prefix.
+
+use serde::{Deserialize, Serialize};
+
+use super::networks::Motion;
+use super::params::Method;
+use super::{FitReport, FittedModel, MovingBody, RigidTrack, TimeAxis};
+use crate::geometry::Point;
+use crate::geometry::rigid::Rigid;
+use crate::nn::Mlp;
+
+impl FittedModel {
+    /// Serialises the model: magic and version, a JSON header, then each network's own
+    /// versioned binary encoding behind a length prefix.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let (kind, networks): (&str, Vec<&Mlp<f32>>) = match &self.motion {
+            Motion::Trajectory(mlp) => ("trajectory", vec![mlp]),
+            Motion::PairFlows { forward, backward } => ("pair_flows", forward.iter().chain(backward).collect()),
+        };
+        let header = Header {
+            method: self.method,
+            time_axis: self.time_axis.clone(),
+            report: self.report.clone(),
+            kind: kind.to_string(),
+            networks: networks.len(),
+            frame_poses: self.frame_poses.clone(),
+            tracks: self.tracks.clone(),
+            bodies: self.bodies.clone(),
+            still_world: self.still_world,
+            free_points: self.free_points.clone(),
+        };
+        let header = serde_json::to_vec(&header).expect("a header always serialises");
+        let mut out = MODEL_MAGIC.to_vec();
+        out.extend((header.len() as u64).to_le_bytes());
+        out.extend(header);
+        for net in networks {
+            let bytes = net.to_bytes();
+            out.extend((bytes.len() as u64).to_le_bytes());
+            out.extend(bytes);
+        }
+        out
+    }
+
+    /// Reads a model written by [`FittedModel::to_bytes`].
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        let mut rest = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
+        let mut take = |what: &str| -> Result<&[u8], String> {
+            if rest.len() < 8 {
+                return Err(format!("model file truncated before {what}"));
+            }
+            let len = u64::from_le_bytes(rest[..8].try_into().expect("8 bytes")) as usize;
+            if rest.len() - 8 < len {
+                return Err(format!("model file truncated inside {what}"));
+            }
+            let (body, tail) = rest[8..].split_at(len);
+            rest = tail;
+            Ok(body)
+        };
+        let header: Header =
+            serde_json::from_slice(take("the header")?).map_err(|e| format!("corrupt model header: {e}"))?;
+        let mut networks = Vec::with_capacity(header.networks.min(1024));
+        for i in 0..header.networks {
+            let body = take("a network")?;
+            networks.push(Mlp::<f32>::from_bytes(body).map_err(|e| format!("corrupt network {i}: {e}"))?);
+        }
+        let frames = header.time_axis.frames();
+        let motion = match header.kind.as_str() {
+            "trajectory" if networks.len() == 1 => Motion::Trajectory(networks.pop().expect("one network")),
+            "pair_flows" if networks.len() == 2 * frames.saturating_sub(1) => {
+                let backward = networks.split_off(frames - 1);
+                Motion::PairFlows { forward: networks, backward }
+            }
+            kind => {
+                return Err(format!(
+                    "model kind {kind:?} with {} networks does not fit {frames} frames",
+                    header.networks
+                ));
+            }
+        };
+        if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
+            return Err("model header: one pose per frame expected".into());
+        }
+        if header.tracks.iter().any(|t| !t.fits(frames)) {
+            return Err("model header: a rigid track does not cover the sequence's frames".into());
+        }
+        if header.bodies.iter().any(|b| !b.fits(frames)) {
+            return Err("model header: a moving body does not cover the sequence's frames".into());
+        }
+        if !header.free_points.is_empty() && header.free_points.len() != frames {
+            return Err("model header: free points of every frame expected".into());
+        }
+        if header.still_world && header.frame_poses.is_none() {
+            return Err("model header: a still world needs the frames' poses".into());
+        }
+        Ok(Self {
+            method: header.method,
+            time_axis: header.time_axis,
+            report: header.report,
+            motion,
+            frame_poses: header.frame_poses,
+            tracks: header.tracks,
+            bodies: header.bodies,
+            still_world: header.still_world,
+            free_points: header.free_points,
+        })
+    }
+}
+
+/// The serialised description of a model, ahead of its networks.
+#[derive(Serialize, Deserialize)]
+struct Header {
+    method: Method,
+    time_axis: TimeAxis,
+    report: FitReport,
+    kind: String,
+    networks: usize,
+    /// Absent in models fitted without poses.
+    #[serde(default)]
+    frame_poses: Option<Vec<Rigid>>,
+    /// Absent in models fitted without `rigid_tracks`.
+    #[serde(default)]
+    tracks: Vec<RigidTrack>,
+    /// Absent in models fitted without `moving_bodies` (and in files written before them).
+    #[serde(default)]
+    bodies: Vec<MovingBody>,
+    /// See [`FittedModel::still_world`]; absent (false) in earlier files.
+    #[serde(default)]
+    still_world: bool,
+    /// See [`FittedModel::free_points`]; absent (empty) in earlier files.
+    #[serde(default)]
+    free_points: Vec<Vec<(Point, bool)>>,
+}
+
+/// File magic and format version of serialised models.
+const MODEL_MAGIC: &[u8] = b"MBNTMDL1";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::tests::scene_model;
+
+    #[test]
+    fn a_model_file_from_before_the_scene_model_still_loads() {
+        // The previous version's header has no bodies, still world or free points.
+        let model = scene_model();
+        let bytes = model.to_bytes();
+        let rest = &bytes[MODEL_MAGIC.len()..];
+        let len = u64::from_le_bytes(rest[..8].try_into().unwrap()) as usize;
+        let mut header: serde_json::Value = serde_json::from_slice(&rest[8..8 + len]).unwrap();
+        for field in ["bodies", "still_world", "free_points"] {
+            header.as_object_mut().unwrap().remove(field).expect("the current header has the field");
+        }
+        header["report"].as_object_mut().unwrap().remove("moving_bodies");
+        header["report"].as_object_mut().unwrap().remove("free_points");
+        let old_header = serde_json::to_vec(&header).unwrap();
+        let mut old = MODEL_MAGIC.to_vec();
+        old.extend((old_header.len() as u64).to_le_bytes());
+        old.extend(old_header);
+        old.extend(&rest[8 + len..]);
+        let loaded = FittedModel::from_bytes(&old).unwrap();
+        assert!(loaded.bodies().is_empty());
+        // Without the scene model the network answers every point, as models of that version did.
+        let at = loaded.positions(&[[50.0, 50.0, 0.0]], 1.0, &[3.0]).unwrap();
+        assert_eq!(at[0], [50.0, 52.0, 0.0]);
+    }
+}
