@@ -24,7 +24,7 @@
 //!    its observed frames (and most of its points) clearly better than standing still, tested
 //!    from the seed and from the nearest observed frames towards it, its centre travels at least
 //!    [`BodyParams::min_travel_m`], and its shape is a road user's (at most a lane wide across
-//!    its travel, between a wheel's and a truck's height). Otherwise its clusters stay with the
+//!    its travel, between a wheel's and a truck's height, 0.25-4 m). Otherwise its clusters stay with the
 //!    still world, free to join a body found from another seed.
 //!
 //! Pure computation on prepared frames (fit coordinates, ego motion removed): no I/O,
@@ -455,7 +455,7 @@ const MAX_WIDTH_M: f32 = 3.5;
 /// A body's height (m): at least a wheel's, at most a truck's.
 const MIN_HEIGHT_M: f32 = 0.25;
 /// See [`MIN_HEIGHT_M`].
-const MAX_HEIGHT_M: f32 = 4.5;
+const MAX_HEIGHT_M: f32 = 4.0;
 
 /// No cluster whose box diagonal exceeds this (m; a long van's) joins a body whole, however large
 /// the body has grown: growth by whole clusters must not run on into buildings.
