@@ -3,7 +3,7 @@
 
 use std::ops::ControlFlow;
 
-use nalgebra::{Isometry3, Point3, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -193,7 +193,40 @@ fn times(frames: usize) -> Vec<f64> {
     (0..frames).map(|k| 0.1 * k as f64).collect()
 }
 
+/// With `ODO_DUMP=DIR`, writes a test's sequence to DIR/NAME (KITTI `.bin` frames, 4 x 4 poses,
+/// timestamps), so that another odometry can be run on exactly the same frames.
+fn dump(name: &str, frames: &[Vec<Point>], truth: &[Isometry3<f64>], t: &[f64]) {
+    let Some(root) = std::env::var_os("ODO_DUMP") else { return };
+    let dir = std::path::Path::new(&root).join(name);
+    std::fs::create_dir_all(dir.join("frames")).unwrap();
+    for (k, f) in frames.iter().enumerate() {
+        let bytes: Vec<u8> = f.iter().flat_map(|p| [p[0], p[1], p[2], 0.0f32]).flat_map(f32::to_le_bytes).collect();
+        std::fs::write(dir.join(format!("frames/{k:06}.bin")), bytes).unwrap();
+    }
+    let poses: String = truth.iter().map(|p| to_row_major(p).map(|v| v.to_string()).join(" ") + "\n").collect();
+    std::fs::write(dir.join("poses.txt"), poses).unwrap();
+    std::fs::write(dir.join("timestamps.txt"), t.iter().map(|v| format!("{v}\n")).collect::<String>()).unwrap();
+}
+
 fn assert_recovered(name: &str, estimate: &Odometry, truth: &[Isometry3<f64>]) {
+    // `ODO_STEPS=1` prints every step: where a sequence goes wrong, not only how far.
+    if std::env::var_os("ODO_STEPS").is_some() {
+        for k in 1..truth.len() {
+            let ts = truth[k - 1].inverse() * truth[k];
+            let es = estimate.world_from_sensor[k - 1].inverse() * estimate.world_from_sensor[k];
+            let d = estimate.frames[k];
+            eprintln!(
+                "{name} {k}: true {:.3} est {:.3} err {:.1} cm  it {} corr {} sigma {:.3} med {:.3}",
+                ts.translation.vector.norm(),
+                es.translation.vector.norm(),
+                100.0 * (ts.inverse() * es).translation.vector.norm(),
+                d.iterations,
+                d.correspondences,
+                d.threshold_m,
+                d.median_residual_m
+            );
+        }
+    }
     let (m, deg) = worst_step_error(estimate, truth);
     eprintln!("{name}: worst step error {:.2} cm, {:.4} deg; end {:?}", 100.0 * m, deg, end_error(estimate, truth));
     assert!(m <= 0.02, "{name}: a frame-to-frame motion is off by {m} m");
@@ -202,26 +235,28 @@ fn assert_recovered(name: &str, estimate: &Odometry, truth: &[Isometry3<f64>]) {
 }
 
 #[test]
-#[ignore = "target not met yet: worst step 3.3 cm (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: worst step 3.3 cm (KISS-ICP 1.3.0 on the same frames: end 5.8 cm, ours 3.7 cm; docs/benchmarks.md section 8)"]
 fn a_straight_drive_is_recovered_within_2_cm_and_a_tenth_of_a_degree_per_frame() {
     let t = times(12);
     let truth = drive(&t, -2.0, |_| 10.0, |_| 0.0);
     let (frames, _) = sweeps(&truth, &street(1), |_| Vec::new(), 11);
+    dump("straight", &frames, &truth, &t);
     assert_recovered("straight", &run(&frames, &t), &truth);
 }
 
 #[test]
-#[ignore = "target not met yet: the first step, without a motion to predict from, is 0.8 m short (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: the first step, without a motion to predict from, lands near standing still and the prediction carries that on (0.1-0.4 m per 0.8 m step); KISS-ICP 1.3.0 fails the same way (docs/benchmarks.md section 8)"]
 fn a_turn_is_recovered_within_2_cm_and_a_tenth_of_a_degree_per_frame() {
     let t = times(12);
     // 8 m/s turning left at 17 degrees per second: 20 degrees over the sequence.
     let truth = drive(&t, -4.0, |_| 8.0, |_| 0.3);
     let (frames, _) = sweeps(&truth, &street(2), |_| Vec::new(), 12);
+    dump("turning", &frames, &truth, &t);
     assert_recovered("turning", &run(&frames, &t), &truth);
 }
 
 #[test]
-#[ignore = "target not met yet: the first steps are pulled towards standing still (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: the first steps are pulled towards standing still; KISS-ICP 1.3.0 too (docs/benchmarks.md section 8)"]
 fn an_accelerating_drive_with_uneven_frame_times_is_recovered() {
     // From 3 m/s at 4 m/s^2, frames 80-120 ms apart: the prediction scales with each time step.
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -231,11 +266,12 @@ fn an_accelerating_drive_with_uneven_frame_times_is_recovered() {
     }
     let truth = drive(&t, -2.0, |t_s| 3.0 + 4.0 * t_s, |t_s| 0.1 * t_s);
     let (frames, _) = sweeps(&truth, &street(3), |_| Vec::new(), 13);
+    dump("accelerating", &frames, &truth, &t);
     assert_recovered("accelerating", &run(&frames, &t), &truth);
 }
 
 #[test]
-#[ignore = "target not met yet: the first step is estimated as standing still (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: the first step is estimated as standing still; KISS-ICP 1.3.0 too (docs/benchmarks.md section 8)"]
 fn a_street_corridor_with_poles_and_parked_cars_does_not_slide() {
     // Two long parallel facades: along the street only the poles, the cars and the facade
     // ends pin the motion. With pure planes, point-to-point residuals carry no information
@@ -261,6 +297,7 @@ fn a_street_corridor_with_poles_and_parked_cars_does_not_slide() {
     let t = times(15);
     let truth = drive(&t, 0.0, |t_s| 12.0 - 5.0 * t_s, |_| 0.0);
     let (frames, _) = sweeps(&truth, &scene, |_| Vec::new(), 14);
+    dump("corridor", &frames, &truth, &t);
     let estimate = run(&frames, &t);
     assert_recovered("corridor", &estimate, &truth);
     let n = t.len() - 1;
@@ -269,7 +306,7 @@ fn a_street_corridor_with_poles_and_parked_cars_does_not_slide() {
 }
 
 #[test]
-#[ignore = "target not met yet: worst step 2.9 cm (docs/benchmarks.md section 8)"]
+#[ignore = "target not met yet: worst step 2.9 cm (KISS-ICP 1.3.0 on the same frames: end 3.2 m, ours 3.5 cm; docs/benchmarks.md section 8)"]
 fn a_third_of_the_points_moving_rigidly_does_not_pull_the_estimate() {
     let t = times(12);
     let truth = drive(&t, -2.0, |_| 8.0, |_| 0.0);
@@ -277,6 +314,7 @@ fn a_third_of_the_points_moving_rigidly_does_not_pull_the_estimate() {
     // covers a wide arc of the sweep.
     let truck = Aabb::new([-6.0, -6.6, 0.0], [10.0, -4.0, 4.5]);
     let (frames, shares) = sweeps(&truth, &street(6), |k| vec![truck.shifted([13.0 * t[k], 0.0, 0.0])], 16);
+    dump("moving_third", &frames, &truth, &t);
     let mean_share = shares.iter().sum::<f64>() / shares.len() as f64;
     assert!(mean_share > 0.3, "the truck holds only {:.0} % of the points", 100.0 * mean_share);
     assert_recovered("moving third", &run(&frames, &t), &truth);
@@ -339,14 +377,16 @@ fn row_major_matrices_round_trip_and_non_rotations_are_refused() {
     assert!(from_row_major(&[1.0; 9]).is_none());
 }
 
-/// KITTI odometry sequence 00, frames 0-5, with its ground truth (in the Velodyne frame).
-#[test]
-#[ignore = "target not met yet: 17 % short of the distance travelled (docs/benchmarks.md section 8)"]
-fn kitti_00_first_six_frames_are_within_one_percent_and_a_tenth_of_a_degree() {
+/// Frames, their timestamps (s) and their ground-truth poses.
+type Sequence = (Vec<Vec<Point>>, Vec<f64>, Vec<Isometry3<f64>>);
+
+/// KITTI odometry sequence 00, frames 0-5, with its ground truth in the Velodyne frame; `None`
+/// when ../shared/data is absent.
+fn kitti_00() -> Option<Sequence> {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/kitti-odometry-00");
     if !dir.join("poses_velodyne.txt").exists() {
         eprintln!("skipped: {} is absent", dir.display());
-        return;
+        return None;
     }
     let frames: Vec<Vec<Point>> =
         (0..6).map(|k| crate::io::read_points_file(&dir.join(format!("{k:06}.bin"))).unwrap()).collect();
@@ -354,8 +394,16 @@ fn kitti_00_first_six_frames_are_within_one_percent_and_a_tenth_of_a_degree() {
         std::fs::read_to_string(dir.join(name)).unwrap().split_whitespace().map(|w| w.parse().unwrap()).collect()
     };
     let t = read_numbers("times.txt");
-    let truth: Vec<Isometry3<f64>> =
-        read_numbers("poses_velodyne.txt").chunks(12).map(|m| from_row_major(m).unwrap()).collect();
+    let truth = read_numbers("poses_velodyne.txt").chunks(12).map(|m| from_row_major(m).unwrap()).collect();
+    Some((frames, t, truth))
+}
+
+#[test]
+#[ignore = "target not met, and not reachable by registration on these frames: the scans themselves put frame 1 \
+            0.67-0.69 m from frame 0 where the ground truth says 0.859 m (see the test below); KISS-ICP 1.3.0 \
+            gives 16.7 % here, ours 17.4 % (docs/benchmarks.md section 8)"]
+fn kitti_00_first_six_frames_are_within_one_percent_and_a_tenth_of_a_degree() {
+    let Some((frames, t, truth)) = kitti_00() else { return };
     let estimate =
         estimate_poses(&frames, Some(&t), &OdometryParams::default(), &mut |_, _| ControlFlow::Continue(())).unwrap();
     let travelled_m: f64 = truth.windows(2).map(|w| (w[1].translation.vector - w[0].translation.vector).norm()).sum();
@@ -363,4 +411,50 @@ fn kitti_00_first_six_frames_are_within_one_percent_and_a_tenth_of_a_degree() {
     eprintln!("KITTI 00 0-5: {:.3} % of {travelled_m:.2} m, {deg:.4} deg", 100.0 * m / travelled_m);
     assert!(m / travelled_m < 0.01, "translation error {m} m over {travelled_m} m");
     assert!(deg < 0.1, "heading error {deg} degrees");
+}
+
+/// Why the KITTI target is out of reach: with the ground truth's rotation, frame 1 fits the full
+/// resolution frame 0 best when moved only about 0.8 of the ground truth's translation, and our
+/// first step lands there. (Every azimuth sector and range band agrees within 0.75-0.93, and the
+/// reference KISS-ICP, run on these files, gives 0.70 m: docs/benchmarks.md section 8.)
+#[test]
+fn kitti_00_scans_put_frame_1_short_of_the_ground_truth_and_the_odometry_follows_the_scans() {
+    let Some((frames, t, truth)) = kitti_00() else { return };
+    let in_range = |f: &[Point]| -> Vec<Point> {
+        f.iter().filter(|p| (3.0..100.0).contains(&(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt())).copied().collect()
+    };
+    let target = in_range(&frames[0]);
+    let tree = crate::geometry::knn::KdTree::new(&target);
+    let source = voxel_downsample(&in_range(&frames[1]), 0.3);
+    let step = truth[0].inverse() * truth[1];
+    // Mean Geman-McClure cost (scale 0.1 m) of frame 1 moved by `scale` times the true translation.
+    let cost = |scale: f64| -> f64 {
+        let pose = Isometry3::from_parts(Translation3::from(step.translation.vector * scale), step.rotation);
+        let sum: f64 = source
+            .iter()
+            .map(|p| {
+                let q = pose * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                let d2 = f64::from(tree.nearest(&[q.x as f32, q.y as f32, q.z as f32]).unwrap().dist2);
+                d2 / (d2 + 0.01)
+            })
+            .sum();
+        sum / source.len() as f64
+    };
+    let profile: Vec<(f64, f64)> = (0..=24).map(|i| 0.5 + 0.025 * f64::from(i)).map(|s| (s, cost(s))).collect();
+    let best = profile.iter().copied().fold((0.0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
+    let true_m = step.translation.vector.norm();
+    eprintln!(
+        "cost at the truth {:.4}, best {:.4} at {:.3} of it ({:.3} m)",
+        cost(1.0),
+        best.1,
+        best.0,
+        best.0 * true_m
+    );
+    assert!((0.7..0.88).contains(&best.0), "the scans' best scale is {}", best.0);
+    assert!(best.1 < cost(1.0) - 0.02);
+    let estimate =
+        estimate_poses(&frames[..2], Some(&t[..2]), &OdometryParams::default(), &mut |_, _| ControlFlow::Continue(()))
+            .unwrap();
+    let ours_m = estimate.world_from_sensor[1].translation.vector.norm();
+    assert!((ours_m - best.0 * true_m).abs() < 0.05, "ours {ours_m} m, the scans' best {} m", best.0 * true_m);
 }
