@@ -210,4 +210,189 @@ mod tests {
         let e = FittedModel::from_bytes(&poisoned).unwrap_err();
         assert!(e.contains("parameter 0 is not finite"), "{e}");
     }
+
+    mod random {
+        use proptest::prelude::*;
+        use rand::{Rng, SeedableRng};
+        use rand_chacha::ChaCha8Rng;
+        use std::cell::Cell;
+
+        use super::*;
+        use crate::model::TimeAxis;
+        use crate::model::params::Method;
+
+        /// Draws the numbers of a random model; about one in `1 / poison_rate` is NaN or infinite,
+        /// and `poisoned` says whether any was.
+        struct Numbers {
+            rng: ChaCha8Rng,
+            poison_rate: f64,
+            poisoned: Cell<bool>,
+        }
+
+        impl Numbers {
+            /// NaN or an infinity, recorded.
+            fn bad(&mut self) -> f64 {
+                self.poisoned.set(true);
+                [f64::NAN, f64::INFINITY, f64::NEG_INFINITY][self.rng.random_range(0..3)]
+            }
+            fn f64(&mut self, range: std::ops::Range<f64>) -> f64 {
+                if self.rng.random_bool(self.poison_rate) { self.bad() } else { self.rng.random_range(range) }
+            }
+            fn f32(&mut self, range: std::ops::Range<f64>) -> f32 {
+                self.f64(range) as f32
+            }
+            fn point(&mut self) -> Point {
+                std::array::from_fn(|_| self.f32(-50.0..50.0))
+            }
+            fn pose(&mut self) -> Rigid {
+                let mut pose = Rigid::from_yaw(self.rng.random_range(-3.0..3.0), [0.0; 3]);
+                pose.translation = std::array::from_fn(|_| self.f64(-50.0..50.0));
+                // A poisoned rotation entry too, now and then.
+                pose.rotation[0][0] =
+                    if self.rng.random_bool(self.poison_rate) { self.bad() } else { pose.rotation[0][0] };
+                pose
+            }
+            fn points(&mut self, most: usize) -> Vec<Point> {
+                let n = self.rng.random_range(0..=most);
+                (0..n).map(|_| self.point()).collect()
+            }
+        }
+
+        /// A model with random contents of every kind a model file holds (networks, poses,
+        /// timestamps, bodies, tracks, free points, report), and whether a number in it is not
+        /// finite.
+        fn random_model(seed: u64) -> (FittedModel, bool) {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let poison_rate = [0.0, 0.002, 0.02][rng.random_range(0..3)];
+            let mut n =
+                Numbers { rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed), poison_rate, poisoned: Cell::new(false) };
+            let frames = rng.random_range(2..6);
+            let poison_net = |n: &mut Numbers, mlp: &mut Mlp<f32>| {
+                for w in mlp.parameters_mut() {
+                    if n.rng.random_bool(n.poison_rate / 10.0) {
+                        *w = n.bad() as f32;
+                    }
+                }
+            };
+            let (method, motion) = if rng.random_bool(0.5) {
+                let width = crate::model::encoding::input_width(frames);
+                let mut mlp = Mlp::<f32>::new(&[width, 8, 3 * (frames - 1)], &mut rng);
+                poison_net(&mut n, &mut mlp);
+                (Method::Mbnt, Motion::Trajectory(mlp))
+            } else {
+                let mut nets: Vec<Mlp<f32>> =
+                    (0..2 * (frames - 1)).map(|_| Mlp::<f32>::new(&[3, 8, 3], &mut rng)).collect();
+                for mlp in &mut nets {
+                    poison_net(&mut n, mlp);
+                }
+                let backward = nets.split_off(frames - 1);
+                (Method::Mbnsf, Motion::PairFlows { forward: nets, backward })
+            };
+            let timestamps = rng.random_bool(0.5).then(|| {
+                let mut t = 0.0;
+                (0..frames)
+                    .map(|_| {
+                        t += 0.05 + n.rng.random_range(0.0..0.1);
+                        if n.rng.random_bool(n.poison_rate) { n.bad() } else { t }
+                    })
+                    .collect()
+            });
+            let frame_poses = rng.random_bool(0.5).then(|| (0..frames).map(|_| n.pose()).collect::<Vec<_>>());
+            let bodies = (0..rng.random_range(0..3))
+                .map(|id| MovingBody {
+                    id,
+                    poses: (0..frames).map(|_| n.pose()).collect(),
+                    observed: (0..frames).map(|_| n.rng.random_bool(0.5)).collect(),
+                    members: (0..frames).map(|_| n.points(4)).collect(),
+                    member_counts: (0..frames).map(|_| n.rng.random_range(0..100)).collect(),
+                    extent_min_m: std::array::from_fn(|_| n.f32(-3.0..0.0)),
+                    extent_max_m: std::array::from_fn(|_| n.f32(0.0..3.0)),
+                })
+                .collect();
+            let tracks = (0..rng.random_range(0..3))
+                .map(|_| RigidTrack {
+                    frame: n.rng.random_range(0..frames),
+                    points: n.points(5),
+                    motions: (0..frames).map(|_| n.pose()).collect(),
+                })
+                .collect();
+            let still_world = frame_poses.is_some() && rng.random_bool(0.5);
+            let free_points = if still_world {
+                (0..frames).map(|_| n.points(3).into_iter().map(|p| (p, n.rng.random_bool(0.5))).collect()).collect()
+            } else {
+                Vec::new()
+            };
+            let report = FitReport {
+                iterations: rng.random_range(0..1000),
+                best_validation_loss: rng.random_bool(0.5).then(|| n.f64(0.0..1.0)),
+                fit_seconds: n.f64(0.0..100.0),
+                estimated_poses: rng
+                    .random_bool(0.3)
+                    .then(|| (0..frames).map(|_| std::array::from_fn(|_| n.f64(-1.0..1.0))).collect()),
+                ..FitReport::default()
+            };
+            let model = FittedModel {
+                method,
+                time_axis: TimeAxis::new(timestamps, frames),
+                report,
+                motion,
+                frame_poses,
+                tracks,
+                bodies,
+                still_world,
+                free_points,
+            };
+            (model, n.poisoned.get())
+        }
+
+        /// A query over the whole time axis, which must not panic.
+        fn answers(model: &FittedModel) -> bool {
+            let axis = model.time_axis();
+            let (first, last) = (axis.frame_time(0), axis.frame_time(axis.frames() - 1));
+            model.positions(&[[1.0, 2.0, 0.5], [-20.0, 3.0, 1.0]], first, &[first, (first + last) / 2.0, last]).is_ok()
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(256))]
+
+            /// Through the save path, a random model either is refused (exactly when it holds a
+            /// non-finite number) or loads back to the same bytes and answers.
+            #[test]
+            fn a_saved_model_either_loads_back_and_answers_or_was_refused(seed in any::<u64>()) {
+                let (model, poisoned) = random_model(seed);
+                match model.to_bytes() {
+                    Err(e) => prop_assert!(poisoned, "a finite model refused: {e}"),
+                    Ok(bytes) => {
+                        prop_assert!(!poisoned, "a model with a non-finite number was saved");
+                        let back = FittedModel::from_bytes(&bytes).map_err(TestCaseError::fail)?;
+                        prop_assert!(back.to_bytes().unwrap() == bytes);
+                        prop_assert!(answers(&back));
+                    }
+                }
+            }
+
+            /// A damaged model file (bytes changed, cut short or lengthened) is refused, or what
+            /// it loads as is finite and answers: reading never panics, and a loaded model works.
+            #[test]
+            fn a_damaged_model_file_is_refused_or_loads_a_model_that_answers(
+                seed in any::<u64>(),
+                edits in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..6),
+                cut in prop::option::of(any::<prop::sample::Index>()),
+            ) {
+                let (model, _) = random_model(seed);
+                let mut bytes = model.encode();
+                for (at, value) in edits {
+                    let i = at.index(bytes.len());
+                    bytes[i] = value;
+                }
+                if let Some(cut) = cut {
+                    bytes.truncate(cut.index(bytes.len()));
+                }
+                if let Ok(loaded) = FittedModel::from_bytes(&bytes) {
+                    prop_assert!(loaded.check_finite().is_ok());
+                    prop_assert!(answers(&loaded));
+                }
+            }
+        }
+    }
 }
