@@ -545,6 +545,72 @@ async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
+/// Asks for `job`'s answers on route `route` (0: a query of frame 1, 1: labels, 2: objects), all
+/// of which need its stored result.
+async fn result_answer(s: &TestServer, job: &str, route: usize) -> (u16, Value) {
+    match route {
+        0 => {
+            let body = json!({ "frame": 1, "times": [0.0] });
+            s.post_json("/v1/jobs/{id}/query", &format!("/v1/jobs/{job}/query"), &body).await
+        }
+        1 => s.get("/v1/jobs/{id}/labels", &format!("/v1/jobs/{job}/labels")).await,
+        _ => s.get("/v1/jobs/{id}/objects", &format!("/v1/jobs/{job}/objects")).await,
+    }
+}
+
+#[tokio::test]
+async fn an_unreadable_stored_result_is_a_problem_naming_the_job_and_the_job_fails_with_the_cause() {
+    let s = TestServer::start().await;
+    let seq = s.upload(&frames(3, 40), None).await;
+    let (truncated, old_version) = (s.submit(&seq, "ntp").await, s.submit(&seq, "ntp").await);
+    let other_seq = s.upload(&frames(3, 40), None).await;
+    let (by_frame, by_labels) = (s.submit(&other_seq, "ntp").await, s.submit(&other_seq, "ntp").await);
+    for job in [&truncated, &old_version, &by_frame, &by_labels] {
+        s.wait_status(job, "succeeded").await;
+    }
+    // Damage the files before any query reads them (queries cache models).
+    let model = |job: &str| s.dir().join("models").join(format!("{job}.mbnt"));
+    let bytes = std::fs::read(model(&truncated)).unwrap();
+    std::fs::write(model(&truncated), &bytes[..bytes.len() / 2]).unwrap();
+    let mut bytes = std::fs::read(model(&old_version)).unwrap();
+    bytes[7] = b'0'; // MBNTMDL1 -> MBNTMDL0: a format this server does not know
+    std::fs::write(model(&old_version), &bytes).unwrap();
+    let frame_1 = s.dir().join("sequences").join(&other_seq).join("frame_00001.f32");
+    let bytes = std::fs::read(&frame_1).unwrap();
+    std::fs::write(&frame_1, &bytes[..bytes.len() - 5]).unwrap();
+
+    for (job, route, cause) in [
+        (&truncated, 0, "the model file cannot be read: model file truncated"),
+        (&old_version, 1, "the model file cannot be read: not an mbnt model file (bad magic or version)"),
+        (&by_frame, 0, "the sequence's frames: corrupt stored data: frame 1 of sequence"),
+        (&by_labels, 1, "the sequence's frames: corrupt stored data: frame 1 of sequence"),
+    ] {
+        // The first request that needs the file says what is wrong, naming the job.
+        let (status, p) = result_answer(&s, job, route).await;
+        assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:result-unreadable")), "{p}");
+        assert_eq!(p["job_id"].as_str(), Some(job.as_str()), "{p}");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(detail.starts_with(&format!("job {job}: the stored result cannot be read: ")), "{detail}");
+        assert!(detail.contains(cause) && detail.ends_with("the job is now marked failed"), "{detail}");
+        assert!(!detail.contains(s.dir().to_str().unwrap()), "no server path in a problem: {detail}");
+        // The job is failed with the cause, and every route now says so.
+        let (_, view) = s.get("/v1/jobs/{id}", &format!("/v1/jobs/{job}")).await;
+        assert_eq!(view["status"], "failed", "{view}");
+        let error = view["error"].as_str().unwrap();
+        assert!(error.starts_with("the stored result cannot be read: ") && error.contains(cause), "{error}");
+        for route in 0..3 {
+            let (status, p) = result_answer(&s, job, route).await;
+            assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:conflict")), "{p}");
+            assert!(p["detail"].as_str().unwrap().contains(error), "{p}");
+        }
+    }
+    // Only the damaged results failed: a new job on the undamaged sequence succeeds and answers.
+    let fine = s.submit(&seq, "ntp").await;
+    s.wait_status(&fine, "succeeded").await;
+    let (status, a) = result_answer(&s, &fine, 0).await;
+    assert_eq!(status, 200, "{a}");
+}
+
 /// Three sweeps of a room-sized corner (floor and three walls, 0.5 m grid) from a sensor that
 /// does not move: enough structure for the odometry.
 fn corner_frames() -> Vec<Vec<[f32; 3]>> {

@@ -189,7 +189,8 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     npz.finish()?.flush()?;
     eprintln!("wrote {}", args.out.display());
     if let Some(path) = &args.model_out {
-        std::fs::write(path, model.to_bytes()).with_context(|| format!("writing {}", path.display()))?;
+        let bytes = model.to_bytes().context("the model is not saved")?;
+        std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
     Ok(())

@@ -96,6 +96,9 @@ const SEEDS_PER_STEP: usize = 16;
 /// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
 /// randomness, and the result does not depend on the thread count.
 ///
+/// A body is predicted at most `max_extrapolation` (in the units of `times`) past the frames it
+/// was seen in; beyond, its pose is held (see `super::extrapolation_horizon`).
+///
 /// `on_step(done, total)` reports the clusters tested as seeds; returning `Break` stops the
 /// search and the function returns `None`.
 pub fn find_moving_bodies(
@@ -103,6 +106,7 @@ pub fn find_moving_bodies(
     trees: &[&KdTree],
     clusters: &[&[Vec<u32>]],
     times: &[f64],
+    max_extrapolation: f64,
     params: &BodyParams,
     on_step: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Option<Vec<MovingBody>> {
@@ -154,7 +158,21 @@ pub fn find_moving_bodies(
         if taken[k][c] || tried[k][c] {
             continue;
         }
-        let tracked = track_body(k, c, probe, first, frames, trees, clusters, &boxes, &labels, &taken, times, params);
+        let tracked = track_body(
+            k,
+            c,
+            probe,
+            first,
+            frames,
+            trees,
+            clusters,
+            &boxes,
+            &labels,
+            &taken,
+            times,
+            max_extrapolation,
+            params,
+        );
         if !tracked.moving {
             // Still after all, or a seed step that led the track astray: it seeds no other
             // body, but stays free to join one found from a better seed.
@@ -247,6 +265,7 @@ fn track_body(
     labels: &[Vec<i32>],
     taken: &[Vec<bool>],
     times: &[f64],
+    max_extrapolation: f64,
     params: &BodyParams,
 ) -> Tracked {
     let t = frames.len();
@@ -266,7 +285,14 @@ fn track_body(
         let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
         let mut previous = Rigid::identity();
         let mut current = Rigid::identity();
+        let mut last_seen = times[k];
         for (n, j) in steps.into_iter().enumerate() {
+            if (times[j] - last_seen).abs() > max_extrapolation {
+                // Past the horizon the body is no longer predicted: it keeps its last predicted
+                // pose, and a guess run far away cannot pick up another object's clusters.
+                poses[j] = current;
+                continue;
+            }
             let guess = if n == 0 {
                 // The seed step, per frame (planar, a fraction of it when the test spanned
                 // several frames), reversed when this chain runs the other way. The fraction is
@@ -318,6 +344,7 @@ fn track_body(
                     model_tree = KdTree::new(&model);
                 }
                 observed[j] = true;
+                last_seen = times[j];
                 on_body[j] = picked;
                 to_model.inverse()
             };
@@ -327,7 +354,7 @@ fn track_body(
         }
     }
     let centre = centroid(&model);
-    let held = smooth_poses(&mut poses, &observed, times, centre, params.smooth_outlier_m);
+    let held = smooth_poses(&mut poses, &observed, times, max_extrapolation, centre, params.smooth_outlier_m);
     let seen = observed.iter().filter(|&&o| o).count();
     // Still or moving, from every observed frame: the seed's points carried by the body's motion
     // must fit that frame clearly better than left standing (the seed test, frame by frame) in
@@ -611,12 +638,20 @@ const SMOOTH_NEIGHBOURS: usize = 8;
 /// `outlier_m` from the fit of its neighbours (itself left out) is an outlier: it takes the pose
 /// of the fit of its inlying neighbours; the other observed frames keep their registration. z,
 /// roll and pitch stay as tracked. Outside the observed span, the local fit at its end continues
-/// at constant velocity and turn rate. Needs four observed frames; with fewer the poses stay as
+/// at constant velocity and turn rate for at most `max_extrapolation` (in the units of `times`),
+/// and the pose is held after that. Needs four observed frames; with fewer the poses stay as
 /// tracked.
 ///
 /// Returns how many observed frames the smooth motion holds within `outlier_m` (all of them when
 /// there are too few to fit).
-fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [f64; 3], outlier_m: f64) -> usize {
+fn smooth_poses(
+    poses: &mut [Rigid],
+    observed: &[bool],
+    times: &[f64],
+    max_extrapolation: f64,
+    centre: [f64; 3],
+    outlier_m: f64,
+) -> usize {
     let seen: Vec<usize> = (0..poses.len()).filter(|&j| observed[j]).collect();
     if seen.len() < 4 {
         return seen.len();
@@ -662,11 +697,12 @@ fn smooth_poses(poses: &mut [Rigid], observed: &[bool], times: &[f64], centre: [
         if observed[j] && inliers.contains(&j) {
             continue; // a good registration: kept, it also holds what a quadratic cannot
         }
-        // Outside the observed span, constant velocity and turn rate from its end: a quadratic
-        // extrapolated far runs away.
+        // Outside the observed span, constant velocity and turn rate from its end (a quadratic
+        // extrapolated far runs away), up to the horizon: a body that left the view is not
+        // driven on for the rest of a long log.
         let edge = times[j].clamp(first, last);
         let Some(c) = local_fit(&pool, edge, None) else { continue };
-        let dt = times[j] - edge;
+        let dt = (times[j] - edge).clamp(-max_extrapolation, max_extrapolation);
         let at_edge = |c: &[f64]| c[0] + c[1] * dt;
         let (x, y, yaw) = (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]));
         // Keep the observed tilt: the rotation's residual after removing its own yaw.
@@ -749,7 +785,7 @@ mod tests {
         let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
         let trees: Vec<&KdTree> = trees.iter().collect();
         let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
-        find_moving_bodies(&frames, &trees, &clusters, &s.times, params, &mut |_, _| ControlFlow::Continue(()))
+        find_moving_bodies(&frames, &trees, &clusters, &s.times, 3.0, params, &mut |_, _| ControlFlow::Continue(()))
             .expect("never stopped")
     }
 
@@ -844,6 +880,34 @@ mod tests {
     }
 
     #[test]
+    fn a_car_that_leaves_the_view_early_is_predicted_up_to_the_horizon_and_then_held() {
+        // 100 frames at 10 Hz: the wall and the straight box (10 m/s), the box gone after
+        // frame 20 (2 s): issue 21's runaway case.
+        let mut s = scene(100);
+        for k in 0..100 {
+            let (points, clusters) = if k <= 20 { (1300, 2) } else { (800, 1) };
+            s.frames[k].truncate(points);
+            s.clusters[k].truncate(clusters);
+        }
+        let bodies = bodies_of(&s, &BodyParams::default());
+        assert_eq!(bodies.len(), 1, "the box is one body");
+        let body = &bodies[0];
+        assert!(body.observed[..=20].iter().all(|&o| o) && !body.observed[21..].iter().any(|&o| o));
+        for (j, pose) in body.poses.iter().enumerate() {
+            assert!(pose.rotation.iter().flatten().chain(&pose.translation).all(|v| v.is_finite()), "frame {j}");
+        }
+        // Predicted at 10 m/s for 3 s past frame 20, to frame 50 (5.0 s), and held from there.
+        let x = |j: usize| body.poses[j].translation[0];
+        for j in 21..50 {
+            assert!((x(j) - x(j - 1) - 1.0).abs() < 0.05, "frame {j}: {:.3} m on", x(j) - x(j - 1));
+        }
+        for j in 51..100 {
+            assert_eq!(body.poses[j], body.poses[99], "frame {j}");
+        }
+        assert!((x(99) - x(20) - 30.0).abs() < 0.5, "held {:.2} m past the last sighting", x(99) - x(20));
+    }
+
+    #[test]
     fn a_parked_car_is_no_body() {
         let mut s = scene(6);
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -869,7 +933,7 @@ mod tests {
         let mut observed = vec![true; 10];
         observed[6] = false; // predicted: the smooth motion fills it in
         poses[6] = Rigid::identity();
-        smooth_poses(&mut poses, &observed, &times, centre, 0.3);
+        smooth_poses(&mut poses, &observed, &times, 3.0, centre, 0.3);
         for (j, (p, q)) in poses.iter().zip(&truth).enumerate() {
             for i in 0..3 {
                 assert!((p.translation[i] - q.translation[i]).abs() < 1e-6, "frame {j}: {p:?} vs {q:?}");

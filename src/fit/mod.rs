@@ -174,14 +174,16 @@ pub fn fit_sequence(
         last.rigid_tracks = Some(TrackingProgress { clusters_done, clusters });
         on_progress(&last)
     };
+    let axis = sequence.time_axis();
+    let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+    let horizon = extrapolation_horizon(&axis);
     let mut model = if bodies {
-        let axis = sequence.time_axis();
-        let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
         let found = bodies::find_moving_bodies(
             &points,
             &trees,
             &clusters,
             &times,
+            horizon,
             &bodies::BodyParams::default(),
             &mut on_step,
         )
@@ -190,13 +192,39 @@ pub fn fit_sequence(
         let free = network_free_points(&model, &points, &trees);
         model.with_free_points(free)
     } else {
-        let tracks =
-            tracks::track_moving_clusters(&points, &trees, &clusters, &tracks::TrackParams::default(), &mut on_step)
-                .ok_or(FitError::Cancelled { iteration })?;
+        let tracks = tracks::track_moving_clusters(
+            &points,
+            &trees,
+            &clusters,
+            &times,
+            horizon,
+            &tracks::TrackParams::default(),
+            &mut on_step,
+        )
+        .ok_or(FitError::Cancelled { iteration })?;
         model.with_tracks(tracks)
     };
     model.set_fit_seconds(started.elapsed().as_secs_f64(), tracking.elapsed().as_secs_f64());
     Ok(model)
+}
+
+/// How long (s) a moving body or rigid track is predicted past the frames it was seen in;
+/// beyond, its pose is held. A body that left the view is otherwise driven on at constant
+/// velocity for the rest of a long log (issue 21: 75 frames, until the numbers overflowed).
+/// 3 s is longer than a 25-frame window at 10 Hz (2.4 s), whose results it leaves unchanged.
+pub const MAX_EXTRAPOLATION_S: f64 = 3.0;
+
+/// The frame rate taken for a sequence without timestamps (its times are frame indices): the
+/// 10 Hz of the datasets' LiDARs, so that the horizon is [`MAX_EXTRAPOLATION_S`] there too.
+const FRAME_RATE_WITHOUT_TIMESTAMPS_HZ: f64 = 10.0;
+
+/// [`MAX_EXTRAPOLATION_S`] in the units of `axis`'s times (s, or frame indices).
+pub(crate) fn extrapolation_horizon(axis: &TimeAxis) -> f64 {
+    if axis.timestamps_s().is_some() {
+        MAX_EXTRAPOLATION_S
+    } else {
+        MAX_EXTRAPOLATION_S * FRAME_RATE_WITHOUT_TIMESTAMPS_HZ
+    }
 }
 
 /// A point on no body is *free* (the network answers it instead of the still world) when the

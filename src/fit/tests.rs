@@ -265,9 +265,9 @@ fn a_model_survives_serialisation_and_bad_bytes_are_an_error() {
     for method in [Method::Mbnt, Method::Mbnsf] {
         let model =
             fit_sequence(&sequence, method, &small_params(method, 3), &mut |_| ControlFlow::Continue(())).unwrap();
-        let bytes = model.to_bytes();
+        let bytes = model.to_bytes().unwrap();
         let back = crate::model::FittedModel::from_bytes(&bytes).unwrap();
-        assert!(back.to_bytes() == bytes, "a model must serialise back to the same bytes");
+        assert!(back.to_bytes().unwrap() == bytes, "a model must serialise back to the same bytes");
         let q = &sequence.frames[0][..10];
         assert_eq!(model.positions(q, 0.0, &[2.0]).unwrap(), back.positions(q, 0.0, &[2.0]).unwrap());
         assert!(crate::model::FittedModel::from_bytes(&bytes[..bytes.len() / 2]).is_err());
@@ -468,10 +468,10 @@ fn rigid_tracks_carry_a_moving_body_the_network_has_not_learnt_and_survive_seria
     // Resampled surfaces register to about their sample spacing (~0.1 m here); 0.2 m leaves room.
     assert!(tracked < 0.2 && tracked < alone / 3.0, "with tracks {tracked:.3} m, network alone {alone:.3} m");
 
-    let bytes = model.to_bytes();
+    let bytes = model.to_bytes().unwrap();
     let back = crate::model::FittedModel::from_bytes(&bytes).unwrap();
     assert_eq!(back.tracks(), model.tracks());
-    assert!(back.to_bytes() == bytes);
+    assert!(back.to_bytes().unwrap() == bytes);
     assert_eq!(model.positions(body_a, 0.5, &[0.0, 3.2]).unwrap(), back.positions(body_a, 0.5, &[0.0, 3.2]).unwrap());
 }
 

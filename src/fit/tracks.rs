@@ -123,8 +123,12 @@ const CLUSTERS_PER_STEP: usize = 16;
 
 /// Tracks of the moving clusters of every frame. `frames[k]` are frame k's points in fit
 /// coordinates with `trees[k]` built over them, and `clusters[k]` its DBSCAN clusters (indices
-/// into `frames[k]`). Deterministic: no randomness, and the result does not depend on the thread
-/// count.
+/// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
+/// randomness, and the result does not depend on the thread count.
+///
+/// A track is followed at most `max_extrapolation` (in the units of `times`) past the last frame
+/// its cluster was found in (see [`TRACK_MIN_SUPPORT`]); beyond, its motion is held (see
+/// `super::extrapolation_horizon`).
 ///
 /// `on_step(done, total)` is called from the calling thread after every
 /// [`CLUSTERS_PER_STEP`] clusters tested (and once at the end) with the clusters tested so far;
@@ -133,6 +137,8 @@ pub fn track_moving_clusters(
     frames: &[&[Point]],
     trees: &[&KdTree],
     clusters: &[&[Vec<u32>]],
+    times: &[f64],
+    max_extrapolation: f64,
     params: &TrackParams,
     on_step: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Option<Vec<RigidTrack>> {
@@ -144,8 +150,10 @@ pub fn track_moving_clusters(
     let work: Vec<(usize, &[u32])> = (0..t).flat_map(|k| clusters[k].iter().map(move |c| (k, c.as_slice()))).collect();
     let mut tracks = Vec::new();
     for (step, chunk) in work.chunks(CLUSTERS_PER_STEP).enumerate() {
-        let found: Vec<RigidTrack> =
-            chunk.par_iter().filter_map(|&(k, cluster)| track_cluster(k, cluster, frames, trees, params)).collect();
+        let found: Vec<RigidTrack> = chunk
+            .par_iter()
+            .filter_map(|&(k, cluster)| track_cluster(k, cluster, frames, trees, times, max_extrapolation, params))
+            .collect();
         tracks.extend(found);
         let done = (step * CLUSTERS_PER_STEP + chunk.len()).min(work.len());
         if on_step(done, work.len()).is_break() {
@@ -196,25 +204,42 @@ pub(crate) fn cluster_subsample(frame: &[Point], cluster: &[u32], max_points: us
     cluster.iter().step_by(stride).map(|&i| frame[i as usize]).collect()
 }
 
+/// A step of a track finds its cluster when the cluster moved there lies this close to the
+/// frame's points, as a share of [`TrackParams::max_corr_dist_m`] (mean capped distance): a
+/// registered cluster is within its sampling spacing (~0.1 m), one predicted into empty space
+/// at the cap.
+pub const TRACK_MIN_SUPPORT: f64 = 0.5;
+
 /// The track of one cluster of frame `k`, or `None` when it is not clearly moving.
 fn track_cluster(
     k: usize,
     cluster: &[u32],
     frames: &[&[Point]],
     trees: &[&KdTree],
+    times: &[f64],
+    max_extrapolation: f64,
     params: &TrackParams,
 ) -> Option<RigidTrack> {
     let t = frames.len();
     let src = cluster_subsample(frames[k], cluster, params.max_track_points);
     let (probe, first) = moving_step(k, 1, &src, frames, trees, params)?;
     let mut motions = vec![Rigid::identity(); t];
+    let mut scratch = DistanceScratch::default();
     // Forward from k, then backward from k: each step starts from the constant-velocity guess
-    // (the last step repeated) and is refined by ICP against that frame.
+    // (the last step repeated) and is refined by ICP against that frame. The compositions go
+    // through unit quaternions (`Rigid::compose`), so the chain stays a rotation however long.
     for forward in [true, false] {
         let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
         let mut previous = Rigid::identity();
         let mut current = Rigid::identity();
+        let mut last_seen = times[k];
         for (n, j) in steps.into_iter().enumerate() {
+            if (times[j] - last_seen).abs() > max_extrapolation {
+                // Past the horizon the cluster is no longer predicted (issue 21: a car that left
+                // the view was driven on for 75 frames): the track holds its last motion.
+                motions[j] = current;
+                continue;
+            }
             let guess = if n == 0 {
                 // The test step, reversed when this chain runs the other way.
                 if forward == (probe > k) { first } else { first.inverse() }
@@ -222,6 +247,10 @@ fn track_cluster(
                 current.compose(&previous.inverse()).compose(&current)
             };
             let next = fit_rigid_icp(&src, trees[j], frames[j], guess, params.icp_iterations, params.max_corr_dist_m);
+            let cap_m = params.max_corr_dist_m;
+            if mean_distance_m(&src, &next, trees[j], cap_m, &mut scratch) < TRACK_MIN_SUPPORT * f64::from(cap_m) {
+                last_seen = times[j];
+            }
             previous = current;
             current = next;
             motions[j] = current;
@@ -264,8 +293,17 @@ mod tests {
             let frames: Vec<&[Point]> = self.frames.iter().map(Vec::as_slice).collect();
             let trees: Vec<&KdTree> = trees.iter().collect();
             let clusters: Vec<&[Vec<u32>]> = self.clusters.iter().map(Vec::as_slice).collect();
-            track_moving_clusters(&frames, &trees, &clusters, params, &mut |_, _| ControlFlow::Continue(()))
-                .expect("never stopped")
+            let times: Vec<f64> = (0..frames.len()).map(|k| 0.1 * k as f64).collect();
+            track_moving_clusters(
+                &frames,
+                &trees,
+                &clusters,
+                &times,
+                3.0,
+                params,
+                &mut |_, _| ControlFlow::Continue(()),
+            )
+            .expect("never stopped")
         }
     }
 
@@ -310,6 +348,52 @@ mod tests {
     }
 
     #[test]
+    fn a_car_that_leaves_the_view_is_followed_up_to_the_horizon_then_held_and_stays_a_rotation() {
+        // 100 frames at 10 Hz: a wall, and a car turning a little as it drives 0.8 m per frame
+        // along x, well clear of the wall, seen in frames 0..=20 only (issue 21's runaway case).
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let mut scene = Scene { frames: Vec::new(), clusters: Vec::new(), car_motion: Vec::new() };
+        for k in 0..100 {
+            let motion = Rigid::from_yaw(0.01 * k as f64, [0.8 * k as f64, 0.0, 0.0]);
+            let mut frame = box_surface(&mut rng, 600, [-5.0, 8.0, 0.0], [30.0, 0.5, 3.0]);
+            let mut clusters = vec![(0..600).collect()];
+            if k <= 20 {
+                frame.extend(
+                    box_surface(&mut rng, 400, [0.0, 0.0, 0.0], [4.2, 1.8, 1.5]).iter().map(|p| motion.apply(p)),
+                );
+                clusters.push((600..1000).collect());
+            }
+            scene.frames.push(frame);
+            scene.clusters.push(clusters);
+            scene.car_motion.push(motion);
+        }
+        let tracks = scene.tracks(&TrackParams::default());
+        // One track per frame the car is seen in but the last, whose test step (to frame 21)
+        // finds no car.
+        assert_eq!(tracks.len(), 20, "{:?}", tracks.iter().map(|t| t.frame).collect::<Vec<_>>());
+        let centre = [2.1f64, 0.9, 0.75];
+        for track in &tracks {
+            for (j, m) in track.motions.iter().enumerate() {
+                assert!(m.rotation.iter().flatten().chain(&m.translation).all(|v| v.is_finite()), "frame {j}");
+                // Still a rotation: R R^T = I (a hand-composed 3 x 3 drifted to 1e212 here).
+                let r = m.rotation_matrix().into_inner();
+                let off = (r * r.transpose() - nalgebra::Matrix3::identity()).abs().max();
+                assert!(off < 1e-9, "track of frame {} to frame {j}: R R^T off by {off:e}", track.frame);
+            }
+            // Followed at constant velocity for 3 s past frame 20 (to frame 50, 30 x 0.8 m on),
+            // held after.
+            for j in 51..100 {
+                assert_eq!(track.motions[j], track.motions[50], "track of frame {} at frame {j}", track.frame);
+            }
+            let at_k = scene.car_motion[track.frame].apply_f64(centre);
+            let last_seen = track.motions[20].apply_f64(at_k);
+            let held = track.motions[99].apply_f64(at_k);
+            let ahead = (0..3).map(|c| (held[c] - last_seen[c]).powi(2)).sum::<f64>().sqrt();
+            assert!((20.0..=26.0).contains(&ahead), "track of frame {}: held {ahead:.1} m on", track.frame);
+        }
+    }
+
+    #[test]
     fn a_static_scene_gives_no_track_and_the_result_is_deterministic() {
         let mut parked = scene(4);
         // Park the car: every frame draws it again at its frame-0 place.
@@ -338,8 +422,9 @@ mod tests {
         let trees: Vec<&KdTree> = trees.iter().collect();
         let clusters: Vec<&[Vec<u32>]> = scene.clusters.iter().map(Vec::as_slice).collect();
         let params = TrackParams::default();
+        let times: Vec<f64> = (0..12).map(f64::from).collect();
         let mut seen = Vec::new();
-        let all = track_moving_clusters(&frames, &trees, &clusters, &params, &mut |done, total| {
+        let all = track_moving_clusters(&frames, &trees, &clusters, &times, 30.0, &params, &mut |done, total| {
             seen.push((done, total));
             ControlFlow::Continue(())
         });
@@ -354,7 +439,7 @@ mod tests {
         assert!(all.iter().all(|t| t.points.len() == 400));
 
         let mut calls = 0;
-        let stopped = track_moving_clusters(&frames, &trees, &clusters, &params, &mut |_, _| {
+        let stopped = track_moving_clusters(&frames, &trees, &clusters, &times, 30.0, &params, &mut |_, _| {
             calls += 1;
             ControlFlow::Break(())
         });

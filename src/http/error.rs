@@ -29,6 +29,14 @@ pub enum ApiError {
     },
     /// 409: the resource is not in a state that allows the request.
     Conflict(String),
+    /// 409: a succeeded job's stored result (its model, its sequence's frames) cannot be read;
+    /// the job has been marked failed with the cause, so later requests see a failed job.
+    ResultUnreadable {
+        /// The job.
+        job: uuid::Uuid,
+        /// What cannot be read and why (the job's error).
+        detail: String,
+    },
     /// 413: the body is larger than the configured limit.
     TooLarge(String),
     /// 415: the body's content type is not one the route accepts.
@@ -67,7 +75,7 @@ impl ApiError {
             ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
             ApiError::Unauthorized => StatusCode::UNAUTHORIZED,
             ApiError::NotFound { .. } => StatusCode::NOT_FOUND,
-            ApiError::Conflict(_) => StatusCode::CONFLICT,
+            ApiError::Conflict(_) | ApiError::ResultUnreadable { .. } => StatusCode::CONFLICT,
             ApiError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             ApiError::Invalid { .. } | ApiError::LimitExceeded { .. } => StatusCode::UNPROCESSABLE_ENTITY,
@@ -79,6 +87,10 @@ impl ApiError {
 
     fn problem(&self) -> Problem {
         let status = self.status();
+        let job_id = match self {
+            ApiError::ResultUnreadable { job, .. } => Some(job.to_string()),
+            _ => None,
+        };
         let (slug, title, detail, parameter, limit) = match self {
             ApiError::BadRequest(d) => ("bad-request", "Malformed request", d.clone(), None, None),
             ApiError::Unauthorized => (
@@ -92,6 +104,13 @@ impl ApiError {
                 ("not-found", "Not found", format!("no {what} with id {id:?}"), None, None)
             }
             ApiError::Conflict(d) => ("conflict", "Conflict with the resource's state", d.clone(), None, None),
+            ApiError::ResultUnreadable { job, detail } => (
+                "result-unreadable",
+                "The job's stored result cannot be read",
+                format!("job {job}: {detail}; the job is now marked failed"),
+                None,
+                None,
+            ),
             ApiError::TooLarge(d) => ("body-too-large", "Request body too large", d.clone(), None, None),
             ApiError::UnsupportedMediaType(d) => {
                 ("unsupported-media-type", "Unsupported media type", d.clone(), None, None)
@@ -119,6 +138,7 @@ impl ApiError {
             detail,
             parameter,
             limit: limit.map(str::to_string),
+            job_id,
         }
     }
 }
@@ -146,6 +166,9 @@ struct Problem {
     parameter: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     limit: Option<String>,
+    /// The job a `result-unreadable` problem is about.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    job_id: Option<String>,
 }
 
 impl Problem {
@@ -228,6 +251,7 @@ pub async fn problem_json(request: axum::extract::Request, next: axum::middlewar
         detail,
         parameter: None,
         limit: None,
+        job_id: None,
     };
     parts.headers.remove(header::CONTENT_LENGTH);
     parts.headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));

@@ -16,7 +16,7 @@ use uuid::Uuid;
 
 use super::error::parse_json;
 use super::sequences::is_json;
-use super::{ApiError, AppState, parse_id};
+use super::{ApiError, AppState, parse_id, stored_read_error};
 use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
@@ -301,10 +301,7 @@ pub async fn query(
     let job = load_job(&state, &id).await?;
     let body: QueryBody = json_body(&state, request).await?;
     if job.status != JobStatus::Succeeded {
-        return Err(ApiError::Conflict(format!(
-            "the job is {}; only a succeeded job can be queried",
-            job.status.as_str()
-        )));
+        return Err(not_succeeded(&job, "only a succeeded job can be queried"));
     }
     let limits = state.limits().clone();
     if body.times.is_empty() {
@@ -354,8 +351,12 @@ pub async fn query(
             if let Some(indices) = &body.indices {
                 check_points(indices.len())?;
             }
-            let sequence = job.sequence_id;
-            let frame = state.blocking(move |s| Ok(s.read_frame(sequence, k)?)).await?;
+            let (sequence, job_id) = (job.sequence_id, job.id);
+            let frame = state
+                .blocking(move |s| {
+                    s.read_frame(sequence, k).map_err(|e| stored_read_error(s, job_id, "the sequence's frames", e))
+                })
+                .await?;
             let points = match body.indices {
                 None => {
                     check_points(frame.len())?;
@@ -403,14 +404,22 @@ pub async fn query(
     Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], json).into_response())
 }
 
+/// The 409 for a job that has not succeeded: its status, its error when it failed (e.g. a
+/// stored result found unreadable), then `rule`.
+fn not_succeeded(job: &JobRecord, rule: &str) -> ApiError {
+    match &job.error {
+        Some(error) if job.status == JobStatus::Failed => {
+            ApiError::Conflict(format!("the job is failed ({error}); {rule}"))
+        }
+        _ => ApiError::Conflict(format!("the job is {}; {rule}", job.status.as_str())),
+    }
+}
+
 /// The job `id` when it has succeeded; 409 naming `what` exists only then otherwise.
 async fn succeeded_job(state: &AppState, id: &str, what: &str) -> Result<JobRecord, ApiError> {
     let job = load_job(state, id).await?;
     if job.status != JobStatus::Succeeded {
-        return Err(ApiError::Conflict(format!(
-            "the job is {}; {what} exist only for a succeeded job",
-            job.status.as_str()
-        )));
+        return Err(not_succeeded(&job, &format!("{what} exist only for a succeeded job")));
     }
     Ok(job)
 }
@@ -550,10 +559,7 @@ pub async fn labels(
         return Err(ApiError::NotImplemented("this build has no av2 export (cargo feature `av2`)".into()));
     }
     if job.status != JobStatus::Succeeded {
-        return Err(ApiError::Conflict(format!(
-            "the job is {}; labels exist only for a succeeded job",
-            job.status.as_str()
-        )));
+        return Err(not_succeeded(&job, "labels exist only for a succeeded job"));
     }
     let model = state.model(job.id).await?;
     let tmp_dir = state.inner.tmp_dir.clone();
@@ -564,7 +570,10 @@ pub async fn labels(
         let record = store
             .get_sequence(job.sequence_id)?
             .ok_or_else(|| ApiError::Conflict("the job's sequence has been deleted".into()))?;
-        let frames = (0..record.frames()).map(|k| store.read_frame(record.id, k)).collect::<Result<Vec<_>, _>>()?;
+        let frames = (0..record.frames())
+            .map(|k| store.read_frame(record.id, k))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| stored_read_error(&*store, job.id, "the sequence's frames", e))?;
         let flows = model.scene_flow(&frames);
         let object_ids = model.object_ids(&frames);
         drop(frames);

@@ -27,7 +27,7 @@ use uuid::Uuid;
 
 use crate::jobs::{Fitter, JobQueue, WorkerPool};
 use crate::model::FittedModel;
-use crate::store::{SqliteStore, Store};
+use crate::store::{SqliteStore, Store, StoreError};
 pub use error::ApiError;
 
 /// The OpenAPI 3.1 document, served at `/openapi.yaml`.
@@ -164,15 +164,17 @@ impl AppState {
         tokio::task::spawn_blocking(move || f(&*store)).await?
     }
 
-    /// The model of a succeeded job, from the cache or the store.
+    /// The model of a succeeded job, from the cache or the store. A model file that is missing
+    /// or cannot be read fails the job ([`result_unreadable`]).
     async fn model(&self, job: Uuid) -> Result<Arc<FittedModel>, ApiError> {
         if let Some(m) = self.cached_model(job) {
             return Ok(m);
         }
         let model = self
             .blocking(move |s| {
-                let bytes = s.read_model(job)?;
-                FittedModel::from_bytes(&bytes).map_err(|e| ApiError::Internal(anyhow::anyhow!("model of {job}: {e}")))
+                let bytes = s.read_model(job).map_err(|e| stored_read_error(s, job, "the model file", e))?;
+                FittedModel::from_bytes(&bytes)
+                    .map_err(|e| result_unreadable(s, job, format!("the model file cannot be read: {e}")))
             })
             .await?;
         let model = Arc::new(model);
@@ -192,6 +194,33 @@ impl AppState {
         let model = entry.1.clone();
         cache.push(entry);
         Some(model)
+    }
+}
+
+/// Marks the succeeded job `job` failed because a stored file its answers need cannot be read
+/// (`what`: which file, and why), and returns the problem that says so. Every later request
+/// then sees a failed job with that reason, instead of an internal error on every query.
+/// Blocking.
+fn result_unreadable(store: &dyn Store, job: Uuid, what: String) -> ApiError {
+    let error = format!("the stored result cannot be read: {what}");
+    tracing::error!(job_id = %job, error, "a succeeded job's stored result is unreadable; the job is failed");
+    if let Err(e) = store.fail_succeeded_job(job, &error) {
+        tracing::error!(job_id = %job, error = %e, "could not mark the job failed");
+    }
+    ApiError::ResultUnreadable { job, detail: error }
+}
+
+/// Maps an error reading `file` (a stored file of the succeeded job `job`): a damaged or
+/// missing file fails the job ([`result_unreadable`]); other failures (I/O, the database) may
+/// pass, and stay internal errors. Blocking.
+fn stored_read_error(store: &dyn Store, job: Uuid, file: &str, e: StoreError) -> ApiError {
+    use std::io::ErrorKind;
+    match &e {
+        StoreError::Corrupt(_) | StoreError::Missing(_) => result_unreadable(store, job, format!("{file}: {e}")),
+        StoreError::Io(io) if matches!(io.kind(), ErrorKind::InvalidData | ErrorKind::UnexpectedEof) => {
+            result_unreadable(store, job, format!("{file}: {e}"))
+        }
+        _ => e.into(),
     }
 }
 

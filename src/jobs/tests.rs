@@ -57,6 +57,34 @@ impl Fitter for PanickingFitter {
     }
 }
 
+/// Runs the real fit, then gives the model a moving body whose pose at frame 1 is NaN: what a
+/// runaway extrapolation produced before models were checked (issue 21).
+struct PoisoningFitter;
+
+impl Fitter for PoisoningFitter {
+    fn fit(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        let model = CoreFitter.fit(sequence, method, params, on_progress)?;
+        let mut runaway = crate::geometry::rigid::Rigid::identity();
+        runaway.rotation[0][0] = f64::NAN;
+        let body = crate::model::MovingBody {
+            id: 3,
+            poses: vec![crate::geometry::rigid::Rigid::identity(), runaway],
+            observed: vec![true, false],
+            members: vec![vec![[0.0; 3]], vec![]],
+            member_counts: vec![1, 0],
+            extent_min_m: [-1.0; 3],
+            extent_max_m: [1.0; 3],
+        };
+        Ok(model.with_bodies(vec![body]))
+    }
+}
+
 struct Fixture {
     dir: std::path::PathBuf,
     queue: Arc<JobQueue>,
@@ -132,6 +160,18 @@ fn a_panicking_fit_fails_the_job_and_the_worker_goes_on() {
         assert_eq!(done.status, JobStatus::Failed);
         assert!(done.error.unwrap().contains("internal error"));
     }
+}
+
+#[test]
+fn a_fit_whose_model_holds_a_nan_fails_the_job_naming_the_part_and_stores_no_model() {
+    let f = fixture();
+    let (w, _) = worker(&f, PoisoningFitter);
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    let done = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(done.status, JobStatus::Failed);
+    assert_eq!(done.error.as_deref(), Some("model not saved: moving body 3, pose at frame 1 is not finite"));
+    assert!(matches!(f.queue.store().read_model(job.id), Err(crate::store::StoreError::Missing(_))));
 }
 
 #[test]

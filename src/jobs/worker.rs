@@ -132,11 +132,18 @@ impl Worker {
             tracing::warn!(error = %e, "progress could not be stored during the fit");
         }
         let outcome = match result {
-            Ok(Ok(model)) => {
-                let bytes = model.to_bytes();
-                tracing::info!(seconds = started.elapsed().as_secs_f64(), "fit succeeded");
-                return store.finish_job(job.id, JobOutcome::Succeeded { model: &bytes });
-            }
+            // Only a model that loads and answers makes a job succeed: one holding a non-finite
+            // number fails it, naming the part, instead of failing every later query.
+            Ok(Ok(model)) => match model.to_bytes() {
+                Ok(bytes) => {
+                    tracing::info!(seconds = started.elapsed().as_secs_f64(), "fit succeeded");
+                    return store.finish_job(job.id, JobOutcome::Succeeded { model: &bytes });
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "the fitted model holds a non-finite number");
+                    JobOutcome::Failed { error: format!("model not saved: {e}") }
+                }
+            },
             Ok(Err(FitError::Cancelled { iteration })) if !cancel.load(Ordering::Relaxed) => {
                 tracing::info!(iteration, "fit interrupted by shutdown; the job goes back to the queue");
                 return store.requeue_job(job.id);

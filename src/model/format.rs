@@ -5,15 +5,23 @@ use serde::{Deserialize, Serialize};
 
 use super::networks::Motion;
 use super::params::Method;
-use super::{FitReport, FittedModel, MovingBody, RigidTrack, TimeAxis};
+use super::{FitReport, FittedModel, MovingBody, NonFiniteModel, RigidTrack, TimeAxis};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
 use crate::nn::Mlp;
 
 impl FittedModel {
     /// Serialises the model: magic and version, a JSON header, then each network's own
-    /// versioned binary encoding behind a length prefix.
-    pub fn to_bytes(&self) -> Vec<u8> {
+    /// versioned binary encoding behind a length prefix. A model holding a non-finite number
+    /// is refused ([`FittedModel::check_finite`]): JSON would write it as `null`, and the file
+    /// would not load back.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, NonFiniteModel> {
+        self.check_finite()?;
+        Ok(self.encode())
+    }
+
+    /// [`FittedModel::to_bytes`] without the check.
+    pub(super) fn encode(&self) -> Vec<u8> {
         let (kind, networks): (&str, Vec<&Mlp<f32>>) = match &self.motion {
             Motion::Trajectory(mlp) => ("trajectory", vec![mlp]),
             Motion::PairFlows { forward, backward } => ("pair_flows", forward.iter().chain(backward).collect()),
@@ -42,7 +50,8 @@ impl FittedModel {
         out
     }
 
-    /// Reads a model written by [`FittedModel::to_bytes`].
+    /// Reads a model written by [`FittedModel::to_bytes`]; a model holding a non-finite
+    /// number (possible in the networks' binary weights) is refused as corrupt.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
         let mut rest = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
         let mut take = |what: &str| -> Result<&[u8], String> {
@@ -65,6 +74,27 @@ impl FittedModel {
             networks.push(Mlp::<f32>::from_bytes(body).map_err(|e| format!("corrupt network {i}: {e}"))?);
         }
         let frames = header.time_axis.frames();
+        if frames < 2 {
+            return Err(format!("model header: a sequence of {frames} frames (at least 2 expected)"));
+        }
+        if let Some(ts) = header.time_axis.timestamps_s()
+            && (ts.len() != frames || ts.windows(2).any(|w| w[1] <= w[0]))
+        {
+            return Err("model header: one increasing timestamp per frame expected".into());
+        }
+        // The networks must take the inputs and give the outputs the queries will use, or a
+        // query on a loaded model would panic.
+        let (input, output) = match header.kind.as_str() {
+            "trajectory" => (super::encoding::input_width(frames), 3 * (frames - 1)),
+            _ => (3, 3),
+        };
+        if let Some(i) = networks.iter().position(|n| n.input_dim() != input || n.output_dim() != output) {
+            return Err(format!(
+                "network {i} takes {} inputs and gives {} outputs; {input} and {output} expected for {frames} frames",
+                networks[i].input_dim(),
+                networks[i].output_dim()
+            ));
+        }
         let motion = match header.kind.as_str() {
             "trajectory" if networks.len() == 1 => Motion::Trajectory(networks.pop().expect("one network")),
             "pair_flows" if networks.len() == 2 * frames.saturating_sub(1) => {
@@ -93,7 +123,7 @@ impl FittedModel {
         if header.still_world && header.frame_poses.is_none() {
             return Err("model header: a still world needs the frames' poses".into());
         }
-        Ok(Self {
+        let model = Self {
             method: header.method,
             time_axis: header.time_axis,
             report: header.report,
@@ -103,7 +133,9 @@ impl FittedModel {
             bodies: header.bodies,
             still_world: header.still_world,
             free_points: header.free_points,
-        })
+        };
+        model.check_finite().map_err(|e| format!("corrupt model: {e}"))?;
+        Ok(model)
     }
 }
 
@@ -144,7 +176,7 @@ mod tests {
     fn a_model_file_from_before_the_scene_model_still_loads() {
         // The previous version's header has no bodies, still world or free points.
         let model = scene_model();
-        let bytes = model.to_bytes();
+        let bytes = model.to_bytes().unwrap();
         let rest = &bytes[MODEL_MAGIC.len()..];
         let len = u64::from_le_bytes(rest[..8].try_into().unwrap()) as usize;
         let mut header: serde_json::Value = serde_json::from_slice(&rest[8..8 + len]).unwrap();

@@ -9,6 +9,7 @@
 //! - `time`: [`TimeAxis`] and [`QueryError`]; `poses`: pose interpolation between frames;
 //!   `networks`: evaluating the fitted networks (velocity sums, Euler through pair flows);
 //! - `format`: the versioned model file ([`FittedModel::to_bytes`], [`FittedModel::from_bytes`]);
+//!   `check`: the finiteness check a model passes before it is saved ([`NonFiniteModel`]);
 //! - `objects`: [`MovingBody`] and [`RigidTrack`]; `report`: [`FitReport`] and its parts;
 //! - [`params`]: the hyper-parameters a model is fitted with (its report records them);
 //! - [`encoding`]: the networks' input encoding.
@@ -16,6 +17,7 @@
 //! The model owns every type a model file holds. `fit` builds models and imports from here; this
 //! module imports nothing from `fit`, so the two do not depend on each other in a cycle.
 
+mod check;
 pub mod encoding;
 mod format;
 mod networks;
@@ -25,6 +27,7 @@ mod poses;
 mod report;
 mod time;
 
+pub use check::NonFiniteModel;
 pub use objects::{MovingBody, RigidTrack};
 pub use report::{FitReport, FrameReport, PhaseTimes};
 pub use time::{QueryError, TimeAxis};
@@ -504,7 +507,7 @@ mod tests {
         let ids = model.object_ids(&[vec![], vec![], vec![[2.2, 0.0, 0.0], [20.0, 0.0, 0.0]], vec![]]);
         assert_eq!(ids[2], vec![0, -1]);
         // The same answers after a round trip through the file format.
-        let back = FittedModel::from_bytes(&model.to_bytes()).unwrap();
+        let back = FittedModel::from_bytes(&model.to_bytes().unwrap()).unwrap();
         check(&back, &expected);
         assert_eq!(back.bodies(), model.bodies());
         // The network alone moves everything along y.

@@ -255,6 +255,10 @@ pub trait Store: Send + Sync + 'static {
     fn update_progress(&self, id: Uuid, progress: &JobProgress) -> Result<bool, StoreError>;
     /// Records how a running job's run ended (the model first, durably, then the status).
     fn finish_job(&self, id: Uuid, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError>;
+    /// Marks a succeeded job failed with `error`, because a stored file its answers need (its
+    /// model, its sequence's frames) cannot be read. A job in another state is left as it is.
+    /// Returns the job, `None` when it does not exist.
+    fn fail_succeeded_job(&self, id: Uuid, error: &str) -> Result<Option<JobRecord>, StoreError>;
     /// Puts a running job back in the queue (its process is stopping before the fit ended).
     fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError>;
     /// Cancels a queued job, or asks the worker of a running one to stop.

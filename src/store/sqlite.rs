@@ -409,10 +409,15 @@ impl Store for SqliteStore {
     fn read_frame(&self, id: Uuid, k: usize) -> Result<Vec<Point>, StoreError> {
         let path = self.inner.dir.sequence_dir(&id.to_string()).join(files::frame_file_name(k));
         files::read_frame(&path).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::NotFound {
-                StoreError::Missing(format!("frame {k} of sequence {id}"))
-            } else {
-                StoreError::Io(e)
+            match e.kind() {
+                std::io::ErrorKind::NotFound => StoreError::Missing(format!("frame {k} of sequence {id}")),
+                // A bad magic, a wrong length, a file cut short: the file is damaged, not busy.
+                // Users see this, so the data directory's path is left out.
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof => {
+                    let what = e.to_string().replace(&format!("{} ", path.display()), "");
+                    StoreError::Corrupt(format!("frame {k} of sequence {id}: {what}"))
+                }
+                _ => StoreError::Io(e),
             }
         })
     }
@@ -518,6 +523,16 @@ impl Store for SqliteStore {
             params![key, status.as_str(), error, json(&job.progress), now_ms()],
         )?;
         require_job(&conn, id)
+    }
+
+    fn fail_succeeded_job(&self, id: Uuid, error: &str) -> Result<Option<JobRecord>, StoreError> {
+        let conn = self.inner.conn();
+        // The model file stays, for an operator to look at; deleting the sequence removes it.
+        conn.execute(
+            "UPDATE jobs SET status = 'failed', error = ?2 WHERE id = ?1 AND status = 'succeeded'",
+            params![id.to_string(), error],
+        )?;
+        get_job(&conn, id)
     }
 
     fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError> {
