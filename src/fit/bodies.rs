@@ -41,7 +41,7 @@ use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_rigid_icp};
 use crate::model::MovingBody;
 
-use super::tracks::{DistanceScratch, TrackParams, cluster_subsample, mean_distance_m, moving_step};
+use super::tracks::{CLUSTERS_PER_STEP, DistanceScratch, TrackParams, cluster_subsample, mean_distance_m, moving_step};
 
 /// Parameters of the body tracker; the defaults are what docs/benchmarks.md measured.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -88,9 +88,6 @@ impl Default for BodyParams {
 /// The second seed test compares frames this far apart.
 const SLOW_SEED_GAP: usize = 3;
 
-/// Seeds tested between two calls of the progress callback.
-const SEEDS_PER_STEP: usize = 16;
-
 /// The moving bodies of a sequence. `frames[k]` are frame k's points in fit coordinates (ego
 /// motion removed) with `trees[k]` built over them, `clusters[k]` its DBSCAN clusters (indices
 /// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
@@ -116,7 +113,7 @@ pub fn find_moving_bodies(
     }
     let work: Vec<(usize, usize)> = (0..t).flat_map(|k| (0..clusters[k].len()).map(move |c| (k, c))).collect();
     let mut seeds: Vec<(usize, usize, usize, Rigid)> = Vec::new();
-    for (step, chunk) in work.chunks(SEEDS_PER_STEP).enumerate() {
+    for (step, chunk) in work.chunks(CLUSTERS_PER_STEP).enumerate() {
         let found: Vec<_> = chunk
             .par_iter()
             .filter_map(|&(k, c)| {
@@ -129,7 +126,7 @@ pub fn find_moving_bodies(
             })
             .collect();
         seeds.extend(found);
-        let done = (step * SEEDS_PER_STEP + chunk.len()).min(work.len());
+        let done = (step * CLUSTERS_PER_STEP + chunk.len()).min(work.len());
         if on_step(done, work.len()).is_break() {
             return None;
         }

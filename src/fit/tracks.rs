@@ -119,7 +119,7 @@ fn search_first_step(
 
 /// Clusters the tracker tests between two calls of its progress callback: small enough that a
 /// cancel takes effect within about a second, large enough to keep both cores busy.
-const CLUSTERS_PER_STEP: usize = 16;
+pub(crate) const CLUSTERS_PER_STEP: usize = 16;
 
 /// Tracks of the moving clusters of every frame. `frames[k]` are frame k's points in fit
 /// coordinates with `trees[k]` built over them, and `clusters[k]` its DBSCAN clusters (indices

@@ -82,17 +82,7 @@ impl FittedModel {
         mlp: Mlp<f32>,
         frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
-        Self {
-            method,
-            time_axis,
-            report,
-            motion: Motion::Trajectory(mlp),
-            frame_poses,
-            tracks: Vec::new(),
-            bodies: Vec::new(),
-            still_world: false,
-            free_points: Vec::new(),
-        }
+        Self::fitted(method, time_axis, report, Motion::Trajectory(mlp), frame_poses)
     }
 
     /// A model from fitted pair flows.
@@ -104,11 +94,22 @@ impl FittedModel {
         backward: Vec<Mlp<f32>>,
         frame_poses: Option<Vec<Rigid>>,
     ) -> Self {
+        Self::fitted(method, time_axis, report, Motion::PairFlows { forward, backward }, frame_poses)
+    }
+
+    /// A network-only model: no tracks, bodies or free points yet.
+    fn fitted(
+        method: Method,
+        time_axis: TimeAxis,
+        report: FitReport,
+        motion: Motion,
+        frame_poses: Option<Vec<Rigid>>,
+    ) -> Self {
         Self {
             method,
             time_axis,
             report,
-            motion: Motion::PairFlows { forward, backward },
+            motion,
             frame_poses,
             tracks: Vec::new(),
             bodies: Vec::new(),
