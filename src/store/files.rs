@@ -3,6 +3,7 @@
 //!
 //! Layout under the data directory:
 //! - `mbnt.sqlite3` (+ WAL files): the database (see [`super::sqlite`]).
+//! - `lock`: held locked (an advisory file lock) by the one process using the directory.
 //! - `sequences/{id}/frame_{k:05}.f32`: frame k of a sequence ([`write_frame`] format).
 //! - `staging/{uuid}/`: a sequence being uploaded; renamed into `sequences/` when complete.
 //! - `models/{job_id}.mbnt`: a fitted model ([`crate::model::FittedModel::to_bytes`]).
@@ -41,6 +42,11 @@ impl DataDir {
     /// The database file.
     pub fn database(&self) -> PathBuf {
         self.root.join("mbnt.sqlite3")
+    }
+
+    /// The file whose lock marks the directory as in use by a process.
+    pub fn lock_file(&self) -> PathBuf {
+        self.root.join("lock")
     }
 
     /// Directory of the committed sequence `id`.

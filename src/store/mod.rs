@@ -216,6 +216,9 @@ pub enum StoreError {
     /// A record the operation needs does not exist.
     #[error("{0} not found")]
     Missing(String),
+    /// Another process is using the data directory.
+    #[error("{0}")]
+    InUse(String),
 }
 
 /// Receives the frames of a sequence being uploaded, in order. Dropping it without

@@ -54,6 +54,9 @@ const JOB_COLUMNS: &str = "id, sequence_id, method, params, status, progress, er
 struct Inner {
     conn: Mutex<Connection>,
     dir: DataDir,
+    /// The data directory's lock, held for as long as the store is open (the kernel releases
+    /// it when the process dies, however it dies).
+    _lock: fs::File,
 }
 
 impl Inner {
@@ -79,8 +82,13 @@ impl std::fmt::Debug for SqliteStore {
 impl SqliteStore {
     /// Opens (creating when absent) the store in `data_dir`, and removes what a crash may
     /// have left behind: staged uploads, upload parts, and files no record refers to.
+    ///
+    /// Fails with [`StoreError::InUse`] while another open store (in this or another process)
+    /// holds the directory: the clean-up here and [`Store::requeue_running_jobs`] assume that
+    /// no one else is uploading or fitting in it.
     pub fn open(data_dir: &std::path::Path) -> Result<Self, StoreError> {
         let dir = DataDir::create(data_dir)?;
+        let lock = lock_data_dir(&dir)?;
         let conn = Connection::open(dir.database())?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         let mode: String = conn.query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))?;
@@ -97,7 +105,7 @@ impl SqliteStore {
         }
         conn.execute_batch(SCHEMA)?;
         conn.execute_batch(&format!("PRAGMA user_version = {SCHEMA_VERSION};"))?;
-        let store = Self { inner: Arc::new(Inner { conn: Mutex::new(conn), dir }) };
+        let store = Self { inner: Arc::new(Inner { conn: Mutex::new(conn), dir, _lock: lock }) };
         store.sweep()?;
         Ok(store)
     }
@@ -146,6 +154,21 @@ impl SqliteStore {
             }
         }
         Ok(())
+    }
+}
+
+/// Takes the exclusive lock of the data directory, without waiting.
+fn lock_data_dir(dir: &DataDir) -> Result<fs::File, StoreError> {
+    let path = dir.lock_file();
+    let file = fs::OpenOptions::new().create(true).truncate(false).write(true).open(&path)?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(fs::TryLockError::WouldBlock) => Err(StoreError::InUse(format!(
+            "the data directory {} is in use by another mbnt process (its lock file {} is held)",
+            dir.root().display(),
+            path.display()
+        ))),
+        Err(fs::TryLockError::Error(e)) => Err(e.into()),
     }
 }
 
@@ -752,6 +775,23 @@ mod tests {
         assert!(matches!(store.read_model(a.id), Err(StoreError::Missing(_))));
         assert!(!store.data_dir().sequence_dir(&seq.id.to_string()).exists());
         assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::NotFound);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_data_directory_is_opened_by_one_store_at_a_time() {
+        let dir = temp_dir();
+        let first = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&first);
+        let a = job(seq.id);
+        first.insert_job(&a).unwrap();
+        first.claim_next_job().unwrap();
+        // A second opening would sweep the first one's uploads and re-queue its running job.
+        assert!(matches!(SqliteStore::open(&dir), Err(StoreError::InUse(_))));
+        assert_eq!(first.get_job(a.id).unwrap().unwrap().status, JobStatus::Running);
+        drop(first);
+        let second = SqliteStore::open(&dir).unwrap();
+        assert_eq!(second.requeue_running_jobs().unwrap(), 1);
         fs::remove_dir_all(&dir).unwrap();
     }
 
