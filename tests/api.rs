@@ -428,11 +428,27 @@ async fn bad_job_requests_name_the_parameter() {
         (json!({ "sequence_id": seq, "params": { "iterations": "many" } }), "params"),
         (json!({ "sequence_id": seq, "colour": "red" }), "colour"),
         (json!({ "method": "ntp" }), "sequence_id"),
+        // null is no value of a parameter (openapi.yaml has none nullable): leave it out instead.
+        (json!({ "sequence_id": seq, "params": { "iterations": 5, "moving_bodies": null } }), "params.moving_bodies"),
+        (json!({ "sequence_id": seq, "params": null }), "params"),
     ];
     for (body, parameter) in cases {
         let (status, p) = s.post_json("/v1/jobs", "/v1/jobs", &body).await;
         assert_eq!((status, p["parameter"].as_str()), (422, Some(parameter)), "{body} -> {p}");
     }
+    let (status, p) = s.post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "method": null })).await;
+    assert_eq!(status, 422, "{p}");
+    // An integer written with a zero fraction is an integer, as in JSON Schema.
+    let (status, job) = s
+        .post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "params": { "iterations": 5.0, "seed": 2.0 } }))
+        .await;
+    assert_eq!((status, &job["params"]["iterations"], &job["params"]["seed"]), (202, &json!(5), &json!(2)), "{job}");
+    // The list routes' limit is 1 to 1000, as documented, not clamped.
+    for path in ["/v1/jobs?limit=0", "/v1/jobs?limit=1001", "/v1/sequences?limit=0", "/v1/sequences?limit=5000"] {
+        let (status, p) = s.get(path.split('?').next().unwrap(), path).await;
+        assert_eq!((status, p["parameter"].as_str()), (422, Some("limit")), "{path} -> {p}");
+    }
+    assert_eq!(s.get("/v1/sequences", "/v1/sequences?limit=1000").await.0, 200);
     let (status, p) =
         s.post_json("/v1/jobs", "/v1/jobs", &json!({ "sequence_id": seq, "params": { "iterations": 51 } })).await;
     assert_eq!((status, p["limit"].as_str()), (422, Some("max_iterations")), "{p}");
@@ -541,6 +557,18 @@ async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
     }
     let (status, a) = q(json!({ "frame": 0, "indices": [1, 2], "times": [0.0, 0.5, 2.0] })).await;
     assert_eq!(status, 200, "{a}");
+    // As in openapi.yaml: whole numbers may carry a zero fraction, and a field is never null.
+    let (status, b) = q(json!({ "frame": 0.0, "indices": [1.0, 2], "times": [0.0, 0.5, 2.0] })).await;
+    assert_eq!((status, &b), (200, &a));
+    for body in [
+        json!({ "frame": 0, "t": null, "times": [0.0] }),
+        json!({ "frame": 0, "indices": null, "times": [0.0] }),
+        json!({ "frame": null, "points": [[0, 0, 0]], "t": 0.0, "times": [0.0] }),
+        json!({ "frame": 0.5, "times": [0.0] }),
+    ] {
+        let (status, p) = q(body.clone()).await;
+        assert_eq!((status, p["type"].as_str()), (422, Some("urn:mbnt:problem:invalid-input")), "{body} -> {p}");
+    }
     drop(s);
     let _ = std::fs::remove_dir_all(dir);
 }

@@ -16,7 +16,8 @@ use uuid::Uuid;
 
 use super::error::parse_json;
 use super::sequences::is_json;
-use super::{ApiError, AppState, parse_id, stored_read_error};
+use super::strict::{Index, fit_params_object, present};
+use super::{ApiError, AppState, list_limit, parse_id, stored_read_error};
 use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
@@ -86,8 +87,9 @@ async fn json_body<T: serde::de::DeserializeOwned>(state: &AppState, request: Re
 #[serde(deny_unknown_fields)]
 struct CreateJob {
     sequence_id: String,
+    #[serde(default, deserialize_with = "present")]
     method: Option<String>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "present")]
     params: Option<serde_json::Value>,
 }
 
@@ -99,8 +101,8 @@ pub async fn create(State(state): State<AppState>, request: Request) -> Result<R
         Some(m) => m.parse::<Method>().map_err(|e| ApiError::invalid("method", e))?,
     };
     let params: FitParams = match body.params {
-        None | Some(serde_json::Value::Null) => FitParams::default(),
-        Some(value) => serde_json::from_value(value).map_err(|e| {
+        None => FitParams::default(),
+        Some(value) => serde_json::from_value(fit_params_object(value)?.into()).map_err(|e| {
             let message = e.to_string();
             let name = message
                 .split("unknown field `")
@@ -156,7 +158,7 @@ pub async fn list(
         .map(|s| Uuid::parse_str(&s))
         .transpose()
         .map_err(|e| ApiError::invalid("sequence_id", format!("not a sequence id: {e}")))?;
-    let filter = JobFilter { status, sequence_id, limit: query.limit.unwrap_or(100).clamp(1, 1000) };
+    let filter = JobFilter { status, sequence_id, limit: list_limit(query.limit)? };
     let jobs = state.blocking(move |s| Ok(s.list_jobs(&filter)?)).await?;
     let views: Vec<JobView> = jobs.iter().map(JobView::from).collect();
     Ok(Json(serde_json::json!({ "jobs": views })))
@@ -264,9 +266,13 @@ pub async fn events(
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct QueryBody {
-    frame: Option<usize>,
-    indices: Option<Vec<usize>>,
+    #[serde(default, deserialize_with = "present")]
+    frame: Option<Index>,
+    #[serde(default, deserialize_with = "present")]
+    indices: Option<Vec<Index>>,
+    #[serde(default, deserialize_with = "present")]
     points: Option<Vec<[f64; 3]>>,
+    #[serde(default, deserialize_with = "present")]
     t: Option<f64>,
     times: Vec<f64>,
 }
@@ -334,7 +340,7 @@ pub async fn query(
     };
     let model = state.model(job.id).await?;
     let (points, t_obs) = match (body.frame, body.points) {
-        (Some(k), None) => {
+        (Some(Index(k)), None) => {
             if body.t.is_some() {
                 return Err(ApiError::invalid(
                     "t",
@@ -363,13 +369,13 @@ pub async fn query(
                     frame
                 }
                 Some(indices) => {
-                    if let Some(bad) = indices.iter().find(|&&i| i >= frame.len()) {
+                    if let Some(Index(bad)) = indices.iter().find(|i| i.0 >= frame.len()) {
                         return Err(ApiError::invalid(
                             "indices",
                             format!("index {bad} is out of range (frame {k} has {} points)", frame.len()),
                         ));
                     }
-                    indices.iter().map(|&i| frame[i]).collect()
+                    indices.iter().map(|i| frame[i.0]).collect()
                 }
             };
             (points, model.time_axis().frame_time(k))

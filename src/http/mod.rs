@@ -10,6 +10,7 @@ pub mod error;
 mod jobs;
 pub mod metrics;
 mod sequences;
+mod strict;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -221,6 +222,20 @@ fn stored_read_error(store: &dyn Store, job: Uuid, file: &str, e: StoreError) ->
             result_unreadable(store, job, format!("{file}: {e}"))
         }
         _ => e.into(),
+    }
+}
+
+/// Default and largest `limit` of the list routes.
+const LIST_LIMIT_DEFAULT: usize = 100;
+const LIST_LIMIT_MAX: usize = 1000;
+
+/// The `limit` query parameter of the list routes: 1 to 1000, 100 when absent. A value out of
+/// range is a 422 rather than silently clamped, as `openapi.yaml` declares the range.
+fn list_limit(limit: Option<usize>) -> Result<usize, ApiError> {
+    match limit {
+        None => Ok(LIST_LIMIT_DEFAULT),
+        Some(n) if (1..=LIST_LIMIT_MAX).contains(&n) => Ok(n),
+        Some(n) => Err(ApiError::invalid("limit", format!("must be in [1, {LIST_LIMIT_MAX}], got {n}"))),
     }
 }
 

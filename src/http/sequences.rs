@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use tokio::io::AsyncWriteExt;
 
 use super::error::{json_error, parse_json};
-use super::{ApiError, AppState, Limits, parse_id};
+use super::{ApiError, AppState, Limits, list_limit, parse_id};
 use crate::geometry::Point;
 use crate::store::{DeleteOutcome, FrameSink, SequenceMeta, SequenceRecord, rfc3339};
 
@@ -477,7 +477,7 @@ pub async fn list(
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let Query(query) = query.map_err(|e| ApiError::Invalid { parameter: None, detail: e.body_text() })?;
-    let limit = query.limit.unwrap_or(100).clamp(1, 1000);
+    let limit = list_limit(query.limit)?;
     let records = state.blocking(move |s| Ok(s.list_sequences(limit)?)).await?;
     let views: Vec<SequenceView> = records.iter().map(SequenceView::from).collect();
     Ok(Json(serde_json::json!({ "sequences": views })))
