@@ -322,19 +322,7 @@ fn track_body(
                 guess
             } else {
                 let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
-                let stride = points.len().div_ceil(max_src).max(1);
-                let src: Vec<Point> = points.iter().step_by(stride).copied().collect();
-                // Frame j -> model: coarse rounds, then fine rounds that ignore far points.
-                let coarse = fit_rigid_icp(
-                    &src,
-                    &model_tree,
-                    &model,
-                    guess.inverse(),
-                    params.icp_iterations,
-                    params.association_radius_m.max(params.fine_corr_dist_m) * 2.0,
-                );
-                let to_model =
-                    fit_rigid_icp(&src, &model_tree, &model, coarse, params.icp_iterations, params.fine_corr_dist_m);
+                let to_model = register_to_model(&points, &guess, &model, &model_tree, params);
                 let before = model.len();
                 model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
                 if model.len() != before {
@@ -350,8 +338,53 @@ fn track_body(
             poses[j] = pose;
         }
     }
-    let centre = centroid(&model);
-    let held = smooth_poses(&mut poses, &observed, times, max_extrapolation, centre, params.smooth_outlier_m);
+    // The registrations as they are; `poses` becomes their smooth motion.
+    let mut registered = poses.clone();
+    let mut centre = centroid(&model);
+    let mut held = smooth_poses(&mut poses, &observed, times, max_extrapolation, centre, params.smooth_outlier_m);
+    // Frames the tracking lost (an occlusion, a turn the constant-velocity guess missed, a sweep
+    // too sparse for a cluster) are looked for again where the smooth motion, fitted to every
+    // frame seen, puts the body: it is a far better guess than the chain's prediction was.
+    for _ in 0..REACQUIRE_ROUNDS {
+        let mut found = false;
+        for j in 0..t {
+            let near_seen = (0..t).any(|i| observed[i] && (times[i] - times[j]).abs() <= max_extrapolation);
+            if observed[j] || !near_seen {
+                continue;
+            }
+            let guess = poses[j];
+            let mut picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 1.0);
+            if picked.points.len() < MIN_OBSERVED_POINTS {
+                picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 2.0);
+            }
+            if picked.points.len() < MIN_OBSERVED_POINTS {
+                continue;
+            }
+            let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
+            let pose = register_to_model(&points, &guess, &model, &model_tree, params).inverse();
+            // A registration that lands far from the smooth motion took something else.
+            let (a, b) = (pose.apply_f64(centre), guess.apply_f64(centre));
+            if (a[0] - b[0]).hypot(a[1] - b[1]) > REACQUIRE_MAX_SHIFT_M {
+                continue;
+            }
+            let to_model = pose.inverse();
+            let before = model.len();
+            model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
+            if model.len() != before {
+                model_tree = KdTree::new(&model);
+            }
+            observed[j] = true;
+            on_body[j] = picked;
+            registered[j] = pose;
+            found = true;
+        }
+        if !found {
+            break;
+        }
+        centre = centroid(&model);
+        poses.clone_from(&registered);
+        held = smooth_poses(&mut poses, &observed, times, max_extrapolation, centre, params.smooth_outlier_m);
+    }
     let seen = observed.iter().filter(|&&o| o).count();
     // Still or moving, from every observed frame: the seed's points carried by the body's motion
     // must fit that frame clearly better than left standing (the seed test, frame by frame) in
@@ -419,6 +452,34 @@ fn track_body(
             extent_max_m[i] = extent_max_m[i].max(q[i]);
         }
     }
+    // The members of each observed frame, once more with the whole model: a frame's sweep is
+    // picked while the model holds only what the frames before it saw, so points of the car
+    // that the model did not yet cover (another face, a cluster DBSCAN split off) were left out.
+    // Loose points only: within the fine correspondence distance of the posed model, and not
+    // on another body's clusters.
+    let model_tree = KdTree::new(&model);
+    let loose2 = params.fine_corr_dist_m * params.fine_corr_dist_m;
+    for j in (0..t).filter(|&j| observed[j]) {
+        let to_model = poses[j].inverse();
+        let picked = &mut on_body[j];
+        let already: HashSet<u32> = picked.points.iter().copied().collect();
+        let posed_box = Aabb::of(model.iter().map(|p| poses[j].apply(p)).collect::<Vec<_>>().iter());
+        for (i, p) in frames[j].iter().enumerate() {
+            let label = labels[j][i];
+            let free = label < 0 || !taken[j][label as usize];
+            let inside = (0..3).all(|c| {
+                p[c] >= posed_box.min[c] - params.fine_corr_dist_m && p[c] <= posed_box.max[c] + params.fine_corr_dist_m
+            });
+            if free
+                && inside
+                && !already.contains(&(i as u32))
+                && model_tree.nearest(&to_model.apply(p)).is_some_and(|h| h.dist2 <= loose2)
+            {
+                picked.points.push(i as u32);
+            }
+        }
+        picked.points.sort_unstable();
+    }
     let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
     let members: Vec<Vec<Point>> =
         (0..t).map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m)).collect();
@@ -452,6 +513,36 @@ fn track_body(
         && 2 * clear_points >= tested_points
         && travel_m >= min_travel_m;
     Tracked { body, clusters: clusters_on_body, moving }
+}
+
+/// Rounds of looking again for a body in the frames its tracking lost.
+const REACQUIRE_ROUNDS: usize = 2;
+
+/// A frame found again must register within this distance (m, at the body's centre) of where
+/// the smooth motion put it.
+const REACQUIRE_MAX_SHIFT_M: f64 = 1.0;
+
+/// The motion taking `points` (one frame's points on a body) onto the body's `model`, from the
+/// body's predicted pose `guess` (model -> frame): coarse ICP rounds, then fine rounds that
+/// ignore far points.
+fn register_to_model(
+    points: &[Point],
+    guess: &Rigid,
+    model: &[Point],
+    model_tree: &KdTree,
+    params: &BodyParams,
+) -> Rigid {
+    let stride = points.len().div_ceil(params.seed.max_track_points).max(1);
+    let src: Vec<Point> = points.iter().step_by(stride).copied().collect();
+    let coarse = fit_rigid_icp(
+        &src,
+        model_tree,
+        model,
+        guess.inverse(),
+        params.icp_iterations,
+        params.association_radius_m.max(params.fine_corr_dist_m) * 2.0,
+    );
+    fit_rigid_icp(&src, model_tree, model, coarse, params.icp_iterations, params.fine_corr_dist_m)
 }
 
 /// A frame's points on a body: whole clusters, and loose points of other clusters or of none.
@@ -628,16 +719,40 @@ fn poly_fit(xs: &[f64], ys: &[f64], degree: usize) -> Vec<f64> {
 /// Observed frames (nearest in time) each local fit of [`smooth_poses`] uses.
 const SMOOTH_NEIGHBOURS: usize = 8;
 
+/// A body whose centre moves at least this far per frame (m) is driven along its path: its
+/// heading follows its direction of travel. Slower, the direction of a few centimetres of
+/// motion is noise, and the heading stays as registered.
+const MIN_STEP_FOR_HEADING_M: f64 = 0.1;
+
+/// Tightest turn (m, radius) the extrapolated motion keeps: a car's turning circle. A turn rate
+/// read off a few noisy frames is clamped to it.
+const MIN_TURN_RADIUS_M: f64 = 4.0;
+
+/// `a - b` wrapped to (-pi, pi].
+fn angle_diff(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(std::f64::consts::TAU);
+    if d > std::f64::consts::PI { d - std::f64::consts::TAU } else { d }
+}
+
 /// Fills in the poses of unobserved frames and of outlying registrations from a smooth planar
-/// motion of the body's centre: x, y and heading as quadratics in time, fitted locally to the
+/// motion of the body's centre, and makes every pose a road user's: on the ground plane (no
+/// roll or pitch beyond the seed frame's, the centre's height a smooth function of time) and,
+/// for a body that moves at least [`MIN_STEP_FOR_HEADING_M`] per frame, heading along its path
+/// (a vehicle does not slide sideways: its heading is its direction of travel plus an offset
+/// that is constant over the sequence, read off the registrations). A sparse or one-sided sweep
+/// registers with a tilt or a twist of a few degrees, which the ends of a 4.5 m car turn into
+/// decimetres; the path, fitted over many frames, is steadier.
+///
+/// x, y (and the heading of slow bodies) are quadratics in time, fitted locally to the
 /// [`SMOOTH_NEIGHBOURS`] observed frames nearest in time (a turn that starts or ends inside the
-/// sequence is no single quadratic). An observed frame whose centre lies farther than
-/// `outlier_m` from the fit of its neighbours (itself left out) is an outlier: it takes the pose
-/// of the fit of its inlying neighbours; the other observed frames keep their registration. z,
-/// roll and pitch stay as tracked. Outside the observed span, the local fit at its end continues
-/// at constant velocity and turn rate for at most `max_extrapolation` (in the units of `times`),
-/// and the pose is held after that. Needs four observed frames; with fewer the poses stay as
-/// tracked.
+/// sequence is no single quadratic); the height of every frame is a local straight line through
+/// twice as many. An observed frame
+/// whose centre lies farther than `outlier_m` from the fit of its neighbours (itself left out)
+/// is an outlier and takes the position of the fit of its inlying neighbours; the other observed
+/// frames keep their registered position. Outside the observed span, the motion at its end
+/// continues at constant speed and turn rate (the path's curvature at the end, at most a
+/// [`MIN_TURN_RADIUS_M`] circle) for at most `max_extrapolation` (in the units of `times`), and
+/// is held after that. Needs four observed frames; with fewer the poses stay as tracked.
 ///
 /// Returns how many observed frames the smooth motion holds within `outlier_m` (all of them when
 /// there are too few to fit).
@@ -657,21 +772,22 @@ fn smooth_poses(
     // Headings unwrapped along the frames so the fit does not see jumps of 2 pi.
     let mut yaws: Vec<f64> = poses.iter().map(yaw_of).collect();
     for j in 1..yaws.len() {
-        while yaws[j] - yaws[j - 1] > std::f64::consts::PI {
-            yaws[j] -= 2.0 * std::f64::consts::PI;
-        }
-        while yaws[j] - yaws[j - 1] < -std::f64::consts::PI {
-            yaws[j] += 2.0 * std::f64::consts::PI;
-        }
+        yaws[j] = yaws[j - 1] + angle_diff(yaws[j], yaws[j - 1]);
     }
-    // The quadratics of x, y and heading through the frames of `pool` nearest in time to `at`
-    // (time centred on `at`), leaving `skip` out; None when fewer than four are left.
-    let local_fit = |pool: &[usize], at: f64, skip: Option<usize>| -> Option<[Vec<f64>; 3]> {
+    // The quadratics of x, y and heading and the line of z through the frames of `pool` nearest
+    // in time to `at` (time centred on `at`), leaving `skip` out; None when fewer than four are
+    // left.
+    let local_fit = |pool: &[usize], at: f64, skip: Option<usize>| -> Option<[Vec<f64>; 4]> {
         let mut near: Vec<usize> = pool.iter().copied().filter(|&j| Some(j) != skip).collect();
         if near.len() < 4 {
             return None;
         }
         near.sort_by(|&a, &b| (times[a] - at).abs().total_cmp(&(times[b] - at).abs()).then(a.cmp(&b)));
+        // The height over twice as many frames: a partial view registers a few decimetres high
+        // or low, and a road's grade changes slowly.
+        let wide = &near[..near.len().min(2 * SMOOTH_NEIGHBOURS)];
+        let wide_xs: Vec<f64> = wide.iter().map(|&j| times[j] - at).collect();
+        let heights: Vec<f64> = wide.iter().map(|&j| pos[j][2]).collect();
         near.truncate(SMOOTH_NEIGHBOURS);
         let xs: Vec<f64> = near.iter().map(|&j| times[j] - at).collect();
         let column = |f: &dyn Fn(usize) -> f64| near.iter().map(|&j| f(j)).collect::<Vec<f64>>();
@@ -679,9 +795,10 @@ fn smooth_poses(
             poly_fit(&xs, &column(&|j| pos[j][0]), 2),
             poly_fit(&xs, &column(&|j| pos[j][1]), 2),
             poly_fit(&xs, &column(&|j| yaws[j]), 2),
+            poly_fit(&wide_xs, &heights, 1),
         ])
     };
-    let off = |c: &[Vec<f64>; 3], j: usize| (c[0][0] - pos[j][0]).hypot(c[1][0] - pos[j][1]);
+    let off = |c: &[Vec<f64>; 4], j: usize| (c[0][0] - pos[j][0]).hypot(c[1][0] - pos[j][1]);
     let inliers: Vec<usize> = seen
         .iter()
         .copied()
@@ -690,24 +807,68 @@ fn smooth_poses(
     let held = inliers.len();
     let pool = if inliers.len() >= 4 { inliers.clone() } else { seen.clone() };
     let (first, last) = (times[pool[0]], times[pool[pool.len() - 1]]);
+    // The typical frame spacing, to judge speeds per frame whatever the time unit.
+    let mut gaps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0.0).collect();
+    gaps.sort_by(f64::total_cmp);
+    let frame_gap = gaps.get(gaps.len() / 2).copied().unwrap_or(1.0);
+    let fits: Vec<Option<[Vec<f64>; 4]>> =
+        (0..poses.len()).map(|j| local_fit(&pool, times[j].clamp(first, last), None)).collect();
+    // Direction of travel (rad) at a frame, when the body moves fast enough there for it to mean
+    // anything.
+    let travel = |c: &[Vec<f64>; 4]| -> Option<f64> {
+        let (vx, vy) = (c[0][1], c[1][1]);
+        (vx.hypot(vy) * frame_gap >= MIN_STEP_FOR_HEADING_M).then(|| vy.atan2(vx))
+    };
+    // The heading's offset from the direction of travel (a vehicle's length axis against its
+    // path; pi when it reverses), as the circular mean over the well-registered frames; None for
+    // a body too slow, or seen moving too rarely, to tell.
+    let offsets: Vec<f64> =
+        inliers.iter().filter_map(|&j| fits[j].as_ref().and_then(travel).map(|dir| angle_diff(yaws[j], dir))).collect();
+    let heading_offset = (offsets.len() >= 3).then(|| {
+        let (s, c) = offsets.iter().fold((0.0, 0.0), |(s, c), a| (s + a.sin(), c + a.cos()));
+        s.atan2(c)
+    });
     for j in 0..poses.len() {
-        if observed[j] && inliers.contains(&j) {
-            continue; // a good registration: kept, it also holds what a quadratic cannot
-        }
-        // Outside the observed span, constant velocity and turn rate from its end (a quadratic
-        // extrapolated far runs away), up to the horizon: a body that left the view is not
-        // driven on for the rest of a long log.
+        let Some(c) = &fits[j] else { continue };
+        let kept = observed[j] && inliers.contains(&j);
         let edge = times[j].clamp(first, last);
-        let Some(c) = local_fit(&pool, edge, None) else { continue };
+        // Outside the observed span the motion goes on from its end, up to the horizon: a body
+        // that left the view is not driven on for the rest of a long log.
         let dt = (times[j] - edge).clamp(-max_extrapolation, max_extrapolation);
-        let at_edge = |c: &[f64]| c[0] + c[1] * dt;
-        let (x, y, yaw) = (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]));
-        // Keep the observed tilt: the rotation's residual after removing its own yaw.
-        let turn = Rigid::from_yaw(yaw - yaws[j], [0.0; 3]);
-        let rotation = turn.compose(&poses[j]).rotation;
-        let at = [x, y, pos[j][2]];
-        let rotated = Rigid { rotation, translation: [0.0; 3] }.apply_f64(centre);
-        poses[j] = Rigid { rotation, translation: std::array::from_fn(|i| at[i] - rotated[i]) };
+        let (x, y, yaw) = match (heading_offset, travel(c)) {
+            (Some(offset), Some(dir)) => {
+                // Constant speed and turn rate along the path (the curvature of the fitted
+                // quadratic at the edge, no tighter than a car's turning circle).
+                let (vx, vy, ax, ay) = (c[0][1], c[1][1], 2.0 * c[0][2], 2.0 * c[1][2]);
+                let speed = vx.hypot(vy);
+                let max_rate = speed / MIN_TURN_RADIUS_M;
+                let rate = ((vx * ay - vy * ax) / (speed * speed)).clamp(-max_rate, max_rate);
+                let turned = rate * dt;
+                let (dx, dy) = if turned.abs() < 1e-9 {
+                    (speed * dt * dir.cos(), speed * dt * dir.sin())
+                } else {
+                    let r = speed / rate;
+                    (r * ((dir + turned).sin() - dir.sin()), r * (dir.cos() - (dir + turned).cos()))
+                };
+                let (x, y) = if kept { (pos[j][0], pos[j][1]) } else { (c[0][0] + dx, c[1][0] + dy) };
+                // The offset taken next to the frame's unwrapped registered heading, so headings
+                // stay continuous over the frames.
+                let yaw = dir + turned + offset;
+                (x, y, yaws[j] + angle_diff(yaw, yaws[j]))
+            }
+            _ => {
+                if kept {
+                    (pos[j][0], pos[j][1], yaws[j])
+                } else {
+                    let at_edge = |c: &[f64]| c[0] + c[1] * dt;
+                    (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]))
+                }
+            }
+        };
+        let z = c[3][0];
+        let rotation = Rigid::from_yaw(yaw, [0.0; 3]);
+        let rotated = rotation.apply_f64(centre);
+        poses[j] = Rigid::from_yaw(yaw, [x - rotated[0], y - rotated[1], z - rotated[2]]);
     }
     held
 }
@@ -905,6 +1066,45 @@ mod tests {
     }
 
     #[test]
+    fn a_turning_box_hidden_for_three_frames_is_found_again_and_stays_on_the_ground_plane() {
+        // The turning box (8 m/s, 0.3 rad/s) is out of sight in frames 5-7 of 14.
+        let mut s = scene(14);
+        for k in 5..=7 {
+            let turning = s.clusters[k][2].clone();
+            let keep: Vec<bool> = (0..s.frames[k].len()).map(|i| !turning.contains(&(i as u32))).collect();
+            let mut renumber = vec![0u32; s.frames[k].len()];
+            let mut frame = Vec::new();
+            for (i, p) in s.frames[k].iter().enumerate() {
+                renumber[i] = frame.len() as u32;
+                if keep[i] {
+                    frame.push(*p);
+                }
+            }
+            let clusters: Vec<Vec<u32>> = [0usize, 1, 3]
+                .iter()
+                .map(|&c| s.clusters[k][c].iter().map(|&i| renumber[i as usize]).collect())
+                .collect();
+            s.frames[k] = frame;
+            s.clusters[k] = clusters;
+        }
+        let bodies = bodies_of(&s, &BodyParams::default());
+        assert_eq!(bodies.len(), 3, "one body per moving box");
+        let body = bodies.iter().find(|b| box_of(&s, b) == 1).expect("the turning box is a body");
+        let seen: Vec<usize> = body.frames_seen();
+        assert_eq!(seen, [0, 1, 2, 3, 4, 8, 9, 10, 11, 12, 13], "seen on both sides of the gap");
+        for j in 0..14 {
+            // Through the gap too: the smooth motion carries it along its arc.
+            let err = corner_error_m(&s, body, 1, j);
+            assert!(err < 0.1, "frame {j}: corner {err:.3} m off");
+        }
+        for body in &bodies {
+            for pose in &body.poses {
+                assert!((pose.rotation[2][2] - 1.0).abs() < 1e-9, "a road user neither rolls nor pitches");
+            }
+        }
+    }
+
+    #[test]
     fn a_parked_car_is_no_body() {
         let mut s = scene(6);
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -920,10 +1120,13 @@ mod tests {
     }
 
     #[test]
-    fn the_smooth_motion_fills_unseen_frames_and_replaces_an_outlier_exactly_on_a_quadratic_path() {
+    fn the_smooth_motion_fills_unseen_frames_and_replaces_an_outlier_exactly_on_a_quadratic_path_heading_along_it() {
         let times: Vec<f64> = (0..10).map(|k| 0.1 * k as f64).collect();
-        let truth: Vec<Rigid> =
-            times.iter().map(|&t| planar(1.0 + 3.0 * t + 2.0 * t * t, -t * t, 0.2 * t + 0.1 * t * t)).collect();
+        // A vehicle's path: heading along the direction of travel (plus a constant offset).
+        let truth: Vec<Rigid> = times
+            .iter()
+            .map(|&t| planar(1.0 + 3.0 * t + 2.0 * t * t, -t * t, (-2.0 * t).atan2(3.0 + 4.0 * t) + 0.1))
+            .collect();
         let centre = [0.0, 0.0, 0.0];
         let mut poses = truth.clone();
         poses[4].translation[0] += 1.0; // a bad registration
