@@ -3,7 +3,7 @@
 //! A trajectory network (NTP) is fitted to a sequence by test-time optimisation, regularised by
 //! a multi-body rigidity loss (MBNT); pair-wise scene-flow fitting (NSFP, MBNSF) is kept as a
 //! baseline. The crate is a library with a thin binary (`src/main.rs`: `serve`, `fit`,
-//! `simulate`, `eval`, `bench`, `odometry`).
+//! `simulate`, `eval`, `bench`, `bench-load`, `odometry`).
 //!
 //! # Layout
 //! - [`geometry`]: points, k-d tree queries, DBSCAN, ground removal, rigid transforms.

@@ -1,7 +1,7 @@
 //! The `mbnt` binary: a thin dispatcher over the library's command front ends.
 
 use clap::{Parser, Subcommand};
-use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, odometry_cmd, serve_cmd, simulate_cmd};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, load_cmd, odometry_cmd, serve_cmd, simulate_cmd};
 
 /// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
 #[derive(Debug, Parser)]
@@ -23,6 +23,8 @@ enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Time a fit phase by phase, faithful and fast modes side by side.
     Bench(bench_cmd::BenchArgs),
+    /// Load the HTTP service on loopback: concurrent uploads and queries while a fit runs.
+    BenchLoad(load_cmd::LoadArgs),
     /// Estimate the sensor poses of frame files (LiDAR odometry), printed as KITTI poses.txt.
     Odometry(odometry_cmd::OdometryArgs),
 }
@@ -40,6 +42,7 @@ fn main() -> anyhow::Result<()> {
         Command::Simulate(args) => simulate_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
         Command::Bench(args) => bench_cmd::run(args),
+        Command::BenchLoad(args) => load_cmd::run(args),
         Command::Odometry(args) => odometry_cmd::run(args),
     }
 }

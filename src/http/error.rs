@@ -310,6 +310,25 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, Api
     serde_json::from_slice(bytes).map_err(|e| json_error(&e, |l, c| text_near(bytes, l, c)))
 }
 
+/// Bodies up to this size are parsed on the executor: below it, handing the work to the
+/// blocking pool costs more than the parse itself.
+const INLINE_PARSE_BYTES: usize = 64 << 10;
+
+/// [`parse_json`] for a body of any size, off the async executor when it is large. Parsing is
+/// CPU work in proportion to the body (queries may carry 100,000 points), and on an executor
+/// thread it would stall every other request that thread serves.
+pub async fn parse_json_body<T, B>(bytes: B) -> Result<T, ApiError>
+where
+    T: serde::de::DeserializeOwned + Send + 'static,
+    B: AsRef<[u8]> + Send + 'static,
+{
+    if bytes.as_ref().len() <= INLINE_PARSE_BYTES {
+        parse_json(bytes.as_ref())
+    } else {
+        tokio::task::spawn_blocking(move || parse_json(bytes.as_ref())).await?
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -14,7 +14,7 @@ use futures_util::Stream;
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
-use super::error::parse_json;
+use super::error::parse_json_body;
 use super::sequences::is_json;
 use super::strict::{Index, fit_params_object, present};
 use super::{ApiError, AppState, list_limit, parse_id, stored_read_error};
@@ -62,7 +62,10 @@ impl From<&JobRecord> for JobView {
 }
 
 /// Reads a JSON body of a non-upload route (content type checked, size capped).
-async fn json_body<T: serde::de::DeserializeOwned>(state: &AppState, request: Request) -> Result<T, ApiError> {
+async fn json_body<T: serde::de::DeserializeOwned + Send + 'static>(
+    state: &AppState,
+    request: Request,
+) -> Result<T, ApiError> {
     let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
     if !is_json(&content_type.to_ascii_lowercase()) {
         return Err(ApiError::UnsupportedMediaType(format!(
@@ -79,7 +82,7 @@ async fn json_body<T: serde::de::DeserializeOwned>(state: &AppState, request: Re
             ApiError::BadRequest(format!("could not read the body: {e}"))
         }
     })?;
-    parse_json(&bytes)
+    parse_json_body(bytes).await
 }
 
 /// Body of `POST /v1/jobs`.

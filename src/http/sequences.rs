@@ -15,7 +15,7 @@ use serde::de::{self, DeserializeSeed, MapAccess, SeqAccess, Visitor};
 use serde::{Deserialize, Serialize};
 use tokio::io::AsyncWriteExt;
 
-use super::error::{json_error, parse_json};
+use super::error::{json_error, parse_json_body};
 use super::{ApiError, AppState, Limits, list_limit, parse_id};
 use crate::geometry::Point;
 use crate::store::{DeleteOutcome, FrameSink, SequenceMeta, SequenceRecord, rfc3339};
@@ -214,7 +214,7 @@ async fn create_multipart(state: &AppState, mut multipart: Multipart) -> Result<
                     }
                     bytes.extend_from_slice(&chunk);
                 }
-                meta = Some(parse_json(&bytes).map_err(|e| match e {
+                meta = Some(parse_json_body(bytes).await.map_err(|e| match e {
                     ApiError::Invalid { parameter, detail } => {
                         ApiError::Invalid { parameter: parameter.or(Some("meta".into())), detail }
                     }
