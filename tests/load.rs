@@ -8,18 +8,18 @@ use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{Options, TestServer};
+use common::{Options, SlowFitter, TestServer};
 use mbnt::cli::load_cmd::{LoadConfig, drive};
-use mbnt::fit::{FitError, LossTerms, Method, Progress, Sequence, ValidFitParams};
+use mbnt::fit::{FitError, Method, Progress, Sequence, ValidFitParams};
 use mbnt::jobs::{CoreFitter, Fitter};
 use mbnt::model::FittedModel;
 
 /// Runs small fits for real; a fit asking for more than `long_from` iterations reports an
-/// iteration every 10 ms until it is cancelled (at most `steps` of them), so that the long
+/// iteration every 10 ms until it is cancelled (`slow`, an hour of them), so that the long
 /// fit surely outlasts the load whatever the machine's speed.
 struct UntilCancelled {
     long_from: usize,
-    steps: usize,
+    slow: SlowFitter,
 }
 
 impl Fitter for UntilCancelled {
@@ -30,31 +30,17 @@ impl Fitter for UntilCancelled {
         params: &ValidFitParams,
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError> {
-        if params.iterations <= self.long_from {
-            return CoreFitter.fit(sequence, method, params, on_progress);
-        }
-        for iteration in 1..=self.steps {
-            std::thread::sleep(Duration::from_millis(10));
-            let p = Progress {
-                iteration,
-                iterations: params.iterations,
-                loss: LossTerms { chamfer: 1.0 / iteration as f64, ..LossTerms::default() },
-                best_validation_loss: None,
-                validation_loss: None,
-                fewest_live_units: None,
-                rigid_tracks: None,
-            };
-            if on_progress(&p).is_break() {
-                return Err(FitError::Cancelled { iteration });
-            }
-        }
-        Err(FitError::Cancelled { iteration: self.steps })
+        let fitter: &dyn Fitter = if params.iterations <= self.long_from { &CoreFitter } else { &self.slow };
+        fitter.fit(sequence, method, params, on_progress)
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn uploads_and_queries_during_a_fit_all_succeed_with_the_right_answers() {
-    let fitter = Arc::new(UntilCancelled { long_from: 100, steps: 360_000 });
+    let fitter = Arc::new(UntilCancelled {
+        long_from: 100,
+        slow: SlowFitter { steps: 360_000, step: Duration::from_millis(10) },
+    });
     let s = TestServer::start_with(Options { fitter, ..Options::default() }).await;
     let config = LoadConfig::small(5, 50);
     let report = drive(&s.base, None, &config).await.expect("the load runs");

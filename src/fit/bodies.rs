@@ -313,11 +313,7 @@ fn track_body(
                 }
                 scaled.compose(&current)
             };
-            let mut picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 1.0);
-            if picked.points.len() < MIN_OBSERVED_POINTS {
-                // A worse prediction (a sparse sweep, a changed speed): look twice as far.
-                picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 2.0);
-            }
+            let picked = associate_widening(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params);
             let pose = if picked.points.len() < MIN_OBSERVED_POINTS {
                 guess
             } else {
@@ -353,21 +349,18 @@ fn track_body(
                 continue;
             }
             let guess = poses[j];
-            let mut picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 1.0);
-            if picked.points.len() < MIN_OBSERVED_POINTS {
-                picked = associate(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params, 2.0);
-            }
+            let picked = associate_widening(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params);
             if picked.points.len() < MIN_OBSERVED_POINTS {
                 continue;
             }
             let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
-            let pose = register_to_model(&points, &guess, &model, &model_tree, params).inverse();
+            let to_model = register_to_model(&points, &guess, &model, &model_tree, params);
+            let pose = to_model.inverse();
             // A registration that lands far from the smooth motion took something else.
             let (a, b) = (pose.apply_f64(centre), guess.apply_f64(centre));
             if (a[0] - b[0]).hypot(a[1] - b[1]) > REACQUIRE_MAX_SHIFT_M {
                 continue;
             }
-            let to_model = pose.inverse();
             let before = model.len();
             model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
             if model.len() != before {
@@ -578,6 +571,27 @@ const MAX_BODY_DIAGONAL_M: f32 = 10.0;
 
 /// Fewer points than this on a body's predicted place do not make an observation.
 const MIN_OBSERVED_POINTS: usize = 10;
+
+/// [`associate`], and twice as far when that finds too few points: a worse prediction (a sparse
+/// sweep, a changed speed).
+#[allow(clippy::too_many_arguments)]
+fn associate_widening(
+    guess: &Rigid,
+    model: &[Point],
+    j: usize,
+    frames: &[&[Point]],
+    clusters: &[&[Vec<u32>]],
+    boxes: &[Vec<Aabb>],
+    taken: &[Vec<bool>],
+    labels: &[i32],
+    params: &BodyParams,
+) -> Picked {
+    let picked = associate(guess, model, j, frames, clusters, boxes, taken, labels, params, 1.0);
+    if picked.points.len() >= MIN_OBSERVED_POINTS {
+        return picked;
+    }
+    associate(guess, model, j, frames, clusters, boxes, taken, labels, params, 2.0)
+}
 
 /// The points of frame `j` on the body's `model` at pose `guess`: every untaken cluster with at
 /// least [`BodyParams::min_share`] of its points within the association radius of the posed
