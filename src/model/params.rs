@@ -92,14 +92,13 @@ impl Mode {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum OdometryMode {
-    /// Estimate the poses when the sequence has none.
+    /// Estimate the poses when the sequence has none (the default of fast mode).
+    #[default]
     Auto,
     /// Estimate the poses even when the sequence has them, and ignore the given ones.
     On,
-    /// Never estimate (the default until the odometry meets its accuracy targets,
-    /// docs/benchmarks.md section 8): a sequence without poses is fitted with each frame in its
-    /// own sensor coordinates (method.md).
-    #[default]
+    /// Never estimate: a sequence without poses is fitted with each frame in its own sensor
+    /// coordinates (method.md; the default of faithful mode).
     Off,
 }
 
@@ -175,11 +174,11 @@ pub struct FitParams {
     /// frame's ego motion removed, so static points stand still (default true). Answers stay
     /// in the sensor frame of the time they refer to either way.
     pub use_poses: Option<bool>,
-    /// **Ours (default `off`):** estimate the sensor poses by LiDAR odometry
+    /// **Ours (default `auto` in fast mode, `off` in faithful mode, which fits as method.md
+    /// does):** estimate the sensor poses by LiDAR odometry
     /// (`crate::odometry`) when the sequence has none (`auto`), always, ignoring given poses
     /// (`on`), or never (`off`). The fit then runs as with given poses. Has no effect when
-    /// `use_poses` is false. Off by default: the odometry has not met its accuracy targets yet
-    /// (docs/benchmarks.md section 8).
+    /// `use_poses` is false. Measured in docs/benchmarks.md section 8.
     pub odometry: Option<OdometryMode>,
     /// **Ours (default true for MBNT in fast mode, false otherwise):** start the network's output
     /// layer at zero, so the initial field is "nothing moves" (in the fit's coordinates: the
@@ -404,7 +403,7 @@ impl FitParams {
             early_stop_min_delta: float_in("early_stop_min_delta", self.early_stop_min_delta, 1e-4, 0.0, 1e3)?,
             remove_ground: self.remove_ground.unwrap_or(true),
             use_poses: self.use_poses.unwrap_or(true),
-            odometry: self.odometry.unwrap_or(OdometryMode::Off),
+            odometry: self.odometry.unwrap_or(if fast { OdometryMode::Auto } else { OdometryMode::Off }),
             zero_output_init: self.zero_output_init.unwrap_or(fast && method == Method::Mbnt),
             rigidity_warmup_iterations: int_in(
                 "rigidity_warmup_iterations",
@@ -453,7 +452,8 @@ mod tests {
         assert!(!p.zero_output_init);
         assert!(!p.rigid_tracks && !p.moving_bodies);
         assert_eq!(p.odometry, OdometryMode::Off);
-        assert_eq!(FitParams::default().check(Method::Mbnt).unwrap().odometry, OdometryMode::Off);
+        assert_eq!(FitParams::default().check(Method::Mbnt).unwrap().odometry, OdometryMode::Auto);
+        assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().odometry, OdometryMode::Auto);
         assert!(FitParams::default().check(Method::Mbnt).unwrap().moving_bodies);
         assert!(!FitParams::default().check(Method::Mbnt).unwrap().rigid_tracks);
         assert!(!FitParams::default().check(Method::Ntp).unwrap().moving_bodies);

@@ -7,10 +7,13 @@
 //! 2. predict the pose by constant velocity (the last frame-to-frame motion, scaled by the time
 //!    step when timestamps are given);
 //! 3. the first registration, with no motion to predict from, starts from the best of a grid
-//!    of translations instead (`initial_search_m`);
-//! 4. point-to-point ICP against the map ([`registration`]): correspondences within three times
-//!    the adaptive threshold sigma ([`threshold`]), a Geman-McClure weight of scale sigma / 3, so
-//!    points that move on their own hardly pull once sigma has adapted;
+//!    of translations instead (`initial_search_m`), scored on planes, poles and edges only;
+//! 4. ICP against the map ([`registration`]): correspondences within three times the adaptive
+//!    threshold sigma ([`threshold`]), a Geman-McClure weight of scale sigma / 3, so points that
+//!    move on their own hardly pull once sigma has adapted; each residual measured only along
+//!    what the map's neighbourhood observes ([`voxel::VoxelMap::local_shapes`]: a plane's
+//!    normal, across a pole, across an edge), since the rings a LiDAR draws on a road or a wall
+//!    move with the sensor and pull point-to-point residuals towards standing still;
 //! 5. the prediction's error feeds the threshold; the map ([`voxel`]) takes the frame at its new
 //!    pose and drops voxels beyond `max_range_m`.
 //!
@@ -33,6 +36,10 @@ use crate::geometry::Point;
 use registration::{IcpSettings, align_to_map, search_translation};
 use threshold::AdaptiveThreshold;
 use voxel::{VoxelMap, transform_points, voxel_downsample};
+
+/// The largest thickness of a local plane of the map (m, standard deviation across it): a
+/// road, a wall or a car's side, sampled with a few centimetres of range noise.
+const PLANE_THICKNESS_M: f64 = 0.05;
 
 /// The odometry's parameters, with the defaults of a 64-beam automotive LiDAR (KITTI).
 #[derive(Debug, Clone, PartialEq)]
@@ -58,6 +65,11 @@ pub struct OdometryParams {
     pub initial_search_m: f64,
     /// Step of that grid (m; default 0.2).
     pub initial_search_step_m: f64,
+    /// After the forward pass, each frame is registered again, [`REFINE_SWEEPS`] times in
+    /// order, against a map of the frames up to this many before and after it (default 4, 0 =
+    /// no refinement): the first frames met a map of one or two sweeps, and every frame met only
+    /// the past.
+    pub refine_window_frames: usize,
     /// ICP iterations per frame at most (default 500).
     pub max_iterations: usize,
     /// ICP stops once an update is smaller than this (m, translation plus rotation in radians;
@@ -76,6 +88,7 @@ impl Default for OdometryParams {
             min_prediction_error_m: 0.1,
             initial_search_m: 3.0,
             initial_search_step_m: 0.2,
+            refine_window_frames: 4,
             max_iterations: 500,
             convergence_m: 1e-4,
         }
@@ -114,6 +127,9 @@ impl OdometryParams {
                 "initial_search_m",
                 format!("must be in [0, 50 initial_search_step_m], got {}", self.initial_search_m),
             );
+        }
+        if self.refine_window_frames > 50 {
+            return bad("refine_window_frames", format!("must be at most 50, got {}", self.refine_window_frames));
         }
         if self.max_iterations == 0 {
             return bad("max_iterations", "must be at least 1".into());
@@ -260,6 +276,9 @@ pub fn estimate_poses(
     // The last frame-to-frame motion (in the previous sensor's coordinates) and its time step.
     let mut last_motion = Isometry3::<f64>::identity();
     let mut last_dt_s = 1.0;
+    // Each frame as the map takes it and as it is registered, for the refinement.
+    let mut map_clouds: Vec<Vec<Point>> = Vec::with_capacity(frames.len());
+    let mut sources: Vec<Vec<Point>> = Vec::with_capacity(frames.len());
     for (k, frame) in frames.iter().enumerate() {
         let cropped = crop(frame, params);
         if cropped.is_empty() {
@@ -272,6 +291,8 @@ pub fn estimate_poses(
         let for_map = voxel_downsample(&cropped, 0.5 * params.voxel_m);
         if k == 0 {
             map.add(&for_map);
+            map_clouds.push(for_map);
+            sources.push(Vec::new());
             poses.push(Isometry3::identity());
             diagnostics.push(FrameDiagnostics {
                 source_points: 0,
@@ -294,10 +315,15 @@ pub fn estimate_poses(
         let previous = poses[k - 1];
         let sigma_m = threshold.sigma_m();
         let mut guess = previous * predicted_motion;
+        let shapes = map.local_shapes(PLANE_THICKNESS_M, true);
         if k == 1 && params.initial_search_m > 0.0 {
+            // Without scatter: a map of one sweep samples every corner on the rings of one
+            // sensor position, and standing still would match them best.
+            let no_scatter = map.local_shapes(PLANE_THICKNESS_M, false);
             guess = search_translation(
                 &source,
                 &map,
+                &no_scatter,
                 guess,
                 params.initial_search_m,
                 params.initial_search_step_m,
@@ -310,8 +336,8 @@ pub fn estimate_poses(
             max_iterations: params.max_iterations,
             convergence_m: params.convergence_m,
         };
-        let fit =
-            align_to_map(&source, &map, guess, &settings).ok_or(OdometryError::RegistrationFailed { frame: k })?;
+        let fit = align_to_map(&source, &map, &shapes, guess, &settings)
+            .ok_or(OdometryError::RegistrationFailed { frame: k })?;
         let pose = fit.world_from_sensor;
         let motion = previous.inverse() * pose;
         let deviation = guess.inverse() * pose;
@@ -331,13 +357,58 @@ pub fn estimate_poses(
             map_points: map.len(),
         });
         poses.push(pose);
+        map_clouds.push(for_map);
+        sources.push(source);
         last_motion = motion;
         last_dt_s = dt_s;
         if on_progress(k + 1, frames.len()).is_break() {
             return Err(OdometryError::Cancelled { frames_done: k + 1 });
         }
     }
+    if params.refine_window_frames > 0 {
+        refine(&mut poses, &map_clouds, &sources, params);
+    }
     Ok(Odometry { world_from_sensor: poses, frames: diagnostics })
+}
+
+/// Sweeps of the refinement over the frames ([`OdometryParams::refine_window_frames`]).
+pub const REFINE_SWEEPS: usize = 2;
+
+/// Correspondences farther than this are ignored in the refinement (m): the poses are already
+/// within centimetres, so anything farther is another surface or something moving.
+const REFINE_MAX_DISTANCE_M: f64 = 0.5;
+
+/// Geman-McClure scale of the refinement (m).
+const REFINE_KERNEL_M: f64 = 0.1;
+
+/// Registers every frame but the first again (in order, [`REFINE_SWEEPS`] times) against a map
+/// of its neighbours on both sides at their current poses: a frame is then held by the sweeps
+/// after it as well as before, and the first frames by more than the one or two sweeps they
+/// met. Frame 0 stays the identity. A frame whose registration fails keeps its pose.
+fn refine(poses: &mut [Isometry3<f64>], map_clouds: &[Vec<Point>], sources: &[Vec<Point>], params: &OdometryParams) {
+    let settings = IcpSettings {
+        max_distance_m: REFINE_MAX_DISTANCE_M,
+        kernel_m: REFINE_KERNEL_M,
+        max_iterations: params.max_iterations,
+        convergence_m: params.convergence_m,
+    };
+    let window = params.refine_window_frames;
+    for _ in 0..REFINE_SWEEPS {
+        for k in 1..poses.len() {
+            let mut map = VoxelMap::new(params.voxel_m, params.max_points_per_voxel);
+            // Nearest frames first, so that full voxels keep the likeliest-overlapping points.
+            let mut neighbours: Vec<usize> =
+                (k.saturating_sub(window)..=(k + window).min(poses.len() - 1)).filter(|&j| j != k).collect();
+            neighbours.sort_by_key(|&j| (j.abs_diff(k), j));
+            for j in neighbours {
+                map.add(&transform_points(&poses[j], &map_clouds[j]));
+            }
+            let shapes = map.local_shapes(PLANE_THICKNESS_M, true);
+            if let Some(fit) = align_to_map(&sources[k], &map, &shapes, poses[k], &settings) {
+                poses[k] = fit.world_from_sensor;
+            }
+        }
+    }
 }
 
 /// The points within the odometry's range.
