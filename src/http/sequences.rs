@@ -511,3 +511,34 @@ pub async fn remove(State(state): State<AppState>, UrlPath(id): UrlPath<String>)
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parameter_of(meta: &str) -> Option<String> {
+        match parse_meta_part(meta.as_bytes()) {
+            Err(ApiError::Invalid { parameter, .. }) => parameter,
+            other => panic!("{meta}: expected a 422, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn meta_part_reads_name_timestamps_and_poses() {
+        let pose = "[1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]";
+        let meta = parse_meta_part(format!(r#"{{"name": "a", "timestamps": [0, 0.5], "poses": [{pose}]}}"#).as_bytes())
+            .unwrap();
+        assert_eq!(meta.name.as_deref(), Some("a"));
+        assert_eq!(meta.timestamps_s, Some(vec![0.0, 0.5]));
+        assert_eq!(meta.poses.unwrap()[0][15], 1.0);
+        assert_eq!(parse_meta_part(b"{}").unwrap(), SequenceMeta::default());
+    }
+
+    #[test]
+    fn meta_part_refusals_name_meta_or_the_field() {
+        assert_eq!(parameter_of(r#"{"timestamps": [0, "#).as_deref(), Some("meta"));
+        assert_eq!(parameter_of(r#"{"timestamps": [NaN]}"#).as_deref(), Some("meta"));
+        assert_eq!(parameter_of(r#"{"frames": []}"#).as_deref(), Some("frames"));
+        assert_eq!(parameter_of(r#"{"poses": [[1, 2, 3]]}"#).as_deref(), Some("meta"));
+    }
+}
