@@ -322,10 +322,21 @@ where
     T: serde::de::DeserializeOwned + Send + 'static,
     B: AsRef<[u8]> + Send + 'static,
 {
+    parse_body_with(bytes, parse_json::<T>).await
+}
+
+/// Runs the pure parser `parse` on a body, off the async executor when the body is large (as
+/// [`parse_json_body`] does for plain JSON), so that a parser with its own error mapping can
+/// stay a plain function that tests and fuzz targets call directly.
+pub async fn parse_body_with<T, B>(bytes: B, parse: fn(&[u8]) -> Result<T, ApiError>) -> Result<T, ApiError>
+where
+    T: Send + 'static,
+    B: AsRef<[u8]> + Send + 'static,
+{
     if bytes.as_ref().len() <= INLINE_PARSE_BYTES {
-        parse_json(bytes.as_ref())
+        parse(bytes.as_ref())
     } else {
-        tokio::task::spawn_blocking(move || parse_json(bytes.as_ref())).await?
+        tokio::task::spawn_blocking(move || parse(bytes.as_ref())).await?
     }
 }
 

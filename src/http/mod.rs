@@ -10,7 +10,7 @@ pub mod error;
 mod jobs;
 pub mod metrics;
 mod sequences;
-mod strict;
+pub mod strict;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -30,6 +30,7 @@ use crate::jobs::{Fitter, JobQueue, WorkerPool};
 use crate::model::FittedModel;
 use crate::store::{SqliteStore, Store, StoreError};
 pub use error::ApiError;
+pub use sequences::parse_meta_part;
 
 /// The OpenAPI 3.1 document, served at `/openapi.yaml`.
 pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");

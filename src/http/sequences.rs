@@ -15,7 +15,7 @@ use serde::de::{self, DeserializeSeed, MapAccess, SeqAccess, Visitor};
 use serde::{Deserialize, Serialize};
 use tokio::io::AsyncWriteExt;
 
-use super::error::{json_error, parse_json_body};
+use super::error::{json_error, parse_body_with, parse_json};
 use super::{ApiError, AppState, Limits, list_limit, parse_id};
 use crate::geometry::Point;
 use crate::store::{DeleteOutcome, FrameSink, SequenceMeta, SequenceRecord, rfc3339};
@@ -189,11 +189,27 @@ struct MetaPart {
     poses: Option<Vec<[f64; 16]>>,
 }
 
+/// Parses the JSON `meta` part of a multipart upload, `{"name"?, "timestamps"?, "poses"?}`
+/// (poses as 16 numbers, row-major 4 x 4), into the sequence's metadata. Errors are the
+/// upload's answers: a 422 naming `meta` (or the offending field) for wrong JSON, unknown
+/// fields or wrong types. Checks against the frames (counts, finite and increasing times) come
+/// when the sequence is committed, once the frames are known. Cost: O(len).
+pub fn parse_meta_part(bytes: &[u8]) -> Result<SequenceMeta, ApiError> {
+    let meta: MetaPart = parse_json(bytes).map_err(|e| match e {
+        ApiError::Invalid { parameter, detail } => {
+            ApiError::Invalid { parameter: parameter.or(Some("meta".into())), detail }
+        }
+        ApiError::BadRequest(d) => ApiError::Invalid { parameter: Some("meta".into()), detail: d },
+        other => other,
+    })?;
+    Ok(SequenceMeta { name: meta.name, timestamps_s: meta.timestamps, poses: meta.poses })
+}
+
 async fn create_multipart(state: &AppState, mut multipart: Multipart) -> Result<SequenceRecord, ApiError> {
     let limits = state.limits().clone();
     let store = state.store();
     let mut sink = tokio::task::spawn_blocking(move || store.begin_sequence()).await??;
-    let mut meta: Option<MetaPart> = None;
+    let mut meta: Option<SequenceMeta> = None;
     let multipart_error = |e: axum::extract::multipart::MultipartError, limits: &Limits| {
         if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
             too_large(limits)
@@ -214,13 +230,7 @@ async fn create_multipart(state: &AppState, mut multipart: Multipart) -> Result<
                     }
                     bytes.extend_from_slice(&chunk);
                 }
-                meta = Some(parse_json_body(bytes).await.map_err(|e| match e {
-                    ApiError::Invalid { parameter, detail } => {
-                        ApiError::Invalid { parameter: parameter.or(Some("meta".into())), detail }
-                    }
-                    ApiError::BadRequest(d) => ApiError::Invalid { parameter: Some("meta".into()), detail: d },
-                    other => other,
-                })?);
+                meta = Some(parse_body_with(bytes, parse_meta_part).await?);
             }
             "frame" => {
                 let k = sink.frames_written();
@@ -275,7 +285,6 @@ async fn create_multipart(state: &AppState, mut multipart: Multipart) -> Result<
         }
     }
     let meta = meta.unwrap_or_default();
-    let meta = SequenceMeta { name: meta.name, timestamps_s: meta.timestamps, poses: meta.poses };
     tokio::task::spawn_blocking(move || commit(sink, meta)).await?
 }
 
@@ -500,5 +509,36 @@ pub async fn remove(State(state): State<AppState>, UrlPath(id): UrlPath<String>)
         DeleteOutcome::HasActiveJobs => {
             Err(ApiError::Conflict("jobs of this sequence are queued or running; cancel them first".into()))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parameter_of(meta: &str) -> Option<String> {
+        match parse_meta_part(meta.as_bytes()) {
+            Err(ApiError::Invalid { parameter, .. }) => parameter,
+            other => panic!("{meta}: expected a 422, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn meta_part_reads_name_timestamps_and_poses() {
+        let pose = "[1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]";
+        let meta = parse_meta_part(format!(r#"{{"name": "a", "timestamps": [0, 0.5], "poses": [{pose}]}}"#).as_bytes())
+            .unwrap();
+        assert_eq!(meta.name.as_deref(), Some("a"));
+        assert_eq!(meta.timestamps_s, Some(vec![0.0, 0.5]));
+        assert_eq!(meta.poses.unwrap()[0][15], 1.0);
+        assert_eq!(parse_meta_part(b"{}").unwrap(), SequenceMeta::default());
+    }
+
+    #[test]
+    fn meta_part_refusals_name_meta_or_the_field() {
+        assert_eq!(parameter_of(r#"{"timestamps": [0, "#).as_deref(), Some("meta"));
+        assert_eq!(parameter_of(r#"{"timestamps": [NaN]}"#).as_deref(), Some("meta"));
+        assert_eq!(parameter_of(r#"{"frames": []}"#).as_deref(), Some("frames"));
+        assert_eq!(parameter_of(r#"{"poses": [[1, 2, 3]]}"#).as_deref(), Some("meta"));
     }
 }

@@ -479,6 +479,13 @@ mod tests {
     fn an_out_of_range_parameter_is_named() {
         let p = FitParams { learning_rate: Some(-1.0), ..Default::default() };
         assert_eq!(p.check(Method::Ntp).unwrap_err().name, "learning_rate");
+        // Found by fuzzing (target `job_params`): read through a `Value`, as the job handler
+        // reads `params`, a finite JSON number beyond f32's range becomes infinity; it must be
+        // refused here, or it would be stored as `null`.
+        let p = serde_json::from_value::<FitParams>(serde_json::json!({"mode": "faithful", "learning_rate": 22e271}))
+            .unwrap();
+        assert_eq!(p.learning_rate, Some(f32::INFINITY));
+        assert_eq!(p.check(Method::Mbnt).unwrap_err().name, "learning_rate");
         let e = serde_json::from_str::<FitParams>(r#"{"iterations": 5, "bogus": 1}"#).unwrap_err();
         assert!(e.to_string().contains("bogus"), "{e}");
     }
