@@ -4,17 +4,11 @@
 //! along a plane's normal, across a pole or an edge, or the full distance (scaled down) in
 //! scattered points.
 
-use std::collections::HashMap;
-
 use nalgebra::{Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Translation3, Vector3, Vector6};
 use rayon::prelude::*;
 
-use super::voxel::{VoxelKey, VoxelMap, voxel_key};
+use super::voxel::{Shapes, VoxelMap, voxel_key};
 use crate::geometry::Point;
-
-/// Per map voxel, the projection of a residual onto what its neighbourhood observes
-/// ([`VoxelMap::local_shapes`]); voxels missing take no correspondence.
-pub(crate) type Shapes = HashMap<VoxelKey, Matrix3<f64>>;
 
 /// Damping of the normal equations, relative to the mean diagonal of each block (translation,
 /// rotation): a direction no correspondence observes (along a corridor whose walls are planes)

@@ -208,25 +208,32 @@ fn dump(name: &str, frames: &[Vec<Point>], truth: &[Isometry3<f64>], t: &[f64]) 
     std::fs::write(dir.join("timestamps.txt"), t.iter().map(|v| format!("{v}\n")).collect::<String>()).unwrap();
 }
 
-fn assert_recovered(name: &str, estimate: &Odometry, truth: &[Isometry3<f64>]) {
-    // `ODO_STEPS=1` prints every step: where a sequence goes wrong, not only how far.
-    if std::env::var_os("ODO_STEPS").is_some() {
-        for k in 1..truth.len() {
-            let ts = truth[k - 1].inverse() * truth[k];
-            let es = estimate.world_from_sensor[k - 1].inverse() * estimate.world_from_sensor[k];
-            let d = estimate.frames[k];
-            eprintln!(
-                "{name} {k}: true {:.3} est {:.3} err {:.1} cm  it {} corr {} sigma {:.3} med {:.3}",
-                ts.translation.vector.norm(),
-                es.translation.vector.norm(),
-                100.0 * (ts.inverse() * es).translation.vector.norm(),
-                d.iterations,
-                d.correspondences,
-                d.threshold_m,
-                d.median_residual_m
-            );
-        }
+/// With `ODO_STEPS=1`, prints every step: where a sequence goes wrong, not only how far.
+fn print_steps(name: &str, estimate: &Odometry, truth: &[Isometry3<f64>]) {
+    if std::env::var_os("ODO_STEPS").is_none() {
+        return;
     }
+    for k in 1..truth.len() {
+        let ts = truth[k - 1].inverse() * truth[k];
+        let es = estimate.world_from_sensor[k - 1].inverse() * estimate.world_from_sensor[k];
+        let e = ts.inverse() * es;
+        let d = estimate.frames[k];
+        eprintln!(
+            "{name} {k}: true {:.3} est {:.3} err {:.1} cm {:.3} deg  it {} corr {} sigma {:.3} med {:.3}",
+            ts.translation.vector.norm(),
+            es.translation.vector.norm(),
+            100.0 * e.translation.vector.norm(),
+            e.rotation.angle().to_degrees(),
+            d.iterations,
+            d.correspondences,
+            d.threshold_m,
+            d.median_residual_m
+        );
+    }
+}
+
+fn assert_recovered(name: &str, estimate: &Odometry, truth: &[Isometry3<f64>]) {
+    print_steps(name, estimate, truth);
     let (m, deg) = worst_step_error(estimate, truth);
     eprintln!("{name}: worst step error {:.2} cm, {:.4} deg; end {:?}", 100.0 * m, deg, end_error(estimate, truth));
     assert!(m <= 0.02, "{name}: a frame-to-frame motion is off by {m} m");
@@ -472,19 +479,7 @@ fn the_simulators_streets_are_followed_within_one_percent_and_a_third_of_a_degre
         let sim = crate::sim::simulate(&crate::sim::SimParams { seed, frames: 25, ..Default::default() }).unwrap();
         let truth: Vec<Isometry3<f64>> = sim.ego_poses.iter().map(|m| from_row_major(m).unwrap()).collect();
         let est = run(&sim.frames, &sim.timestamps_s);
-        if std::env::var_os("ODO_STEPS").is_some() {
-            for k in 1..truth.len() {
-                let ts = truth[k - 1].inverse() * truth[k];
-                let es = est.world_from_sensor[k - 1].inverse() * est.world_from_sensor[k];
-                let e = ts.inverse() * es;
-                eprint!(
-                    "{k}: {:.1} cm {:.2} deg; ",
-                    100.0 * e.translation.vector.norm(),
-                    e.rotation.angle().to_degrees()
-                );
-            }
-            eprintln!();
-        }
+        print_steps(&format!("seed {seed}"), &est, &truth);
         let (step_m, step_deg) = worst_step_error(&est, &truth);
         let (end_m, end_deg) = end_error(&est, &truth);
         let dist = (truth[0].inverse() * truth[24]).translation.vector.norm();

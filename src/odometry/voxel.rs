@@ -138,7 +138,7 @@ impl VoxelMap {
     ///
     /// Cost: one pass over the voxels, 27 lookups and a 3 x 3 eigen-decomposition each (in
     /// parallel). Deterministic: each voxel's shape depends only on the map's points.
-    pub fn local_shapes(&self, max_thickness_m: f64, with_scatter: bool) -> HashMap<VoxelKey, Matrix3<f64>> {
+    pub fn local_shapes(&self, max_thickness_m: f64, with_scatter: bool) -> Shapes {
         let keys: Vec<VoxelKey> = self.voxels.keys().copied().collect();
         let edge_m = f64::from(self.voxel_m);
         keys.par_iter()
@@ -161,6 +161,10 @@ impl VoxelMap {
             .collect()
     }
 }
+
+/// Per map voxel, the projection of a residual onto what its neighbourhood observes
+/// ([`VoxelMap::local_shapes`]); voxels missing take no correspondence.
+pub(crate) type Shapes = HashMap<VoxelKey, Matrix3<f64>>;
 
 /// A residual against scattered points is scaled by this (its weight in the normal equations
 /// by the square, 0.09): such a neighbourhood is often where surfaces meet (a wall's foot, a
