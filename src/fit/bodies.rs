@@ -18,14 +18,17 @@
 //!    time) with a planar motion of constant acceleration and constant change of turn rate
 //!    (quadratic in time for heading and position, least squares); a frame far from the fit of
 //!    its neighbours is an outlier, and outliers and unobserved frames take the smooth motion
-//!    (at constant velocity and turn rate beyond the observed span);
+//!    (at constant velocity and turn rate beyond the observed span). A slow body (a pedestrian)
+//!    whose registrations lie on one straight line takes that line at every frame instead: its
+//!    velocity then comes from every frame seen, not eight;
 //! 4. **still or moving from all frames**: a body is kept when it is seen in enough frames (every
 //!    frame of a pair), its registrations lie on its smooth motion, its motion explains most of
 //!    its observed frames (and most of its points) clearly better than standing still, tested
 //!    from the seed and from the nearest observed frames towards it, its centre travels at least
 //!    [`BodyParams::min_travel_m`], and its shape is a road user's (at most a lane wide across
 //!    its travel, between a wheel's and a truck's height, 0.25-4 m). Otherwise its clusters stay with the
-//!    still world, free to join a body found from another seed.
+//!    still world, free to join a body found from another seed. A kept body's member points that
+//!    the still world explains and its motion does not (a post it drove past) leave it.
 //!
 //! Pure computation on prepared frames (fit coordinates, ego motion removed): no I/O,
 //! deterministic (the seed tests run in parallel, the tracking in a fixed order), with a
@@ -473,6 +476,11 @@ fn track_body(
         }
         picked.points.sort_unstable();
     }
+    // Points of the still world a body took in (a tree it drove past, a wall behind a
+    // pedestrian) leave it: the still world explains them and the body's motion does not.
+    for j in (0..t).filter(|&j| observed[j]) {
+        on_body[j].points.retain(|&i| !still_member(&frames[j][i as usize], j, &poses, trees));
+    }
     let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
     let members: Vec<Vec<Point>> =
         (0..t).map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m)).collect();
@@ -506,6 +514,39 @@ fn track_body(
         && 2 * clear_points >= tested_points
         && travel_m >= min_travel_m;
     Tracked { body, clusters: clusters_on_body, moving }
+}
+
+/// A member point is still world when, left where it is, it lies this close (m) to every
+/// neighbouring sweep ([`STILL_TEST_FRAMES`] each side): the sampling spacing of a surface at
+/// street distances...
+const STILL_MATCH_M: f32 = 0.1;
+/// ...and carried by the body's motion it lies this far (m, mean over those sweeps, each
+/// distance capped at 1 m) from them. A car's flank sliding along itself lies on the neighbouring
+/// sweeps both ways and stays on the body.
+const STILL_MOVED_OFF_M: f64 = 0.3;
+/// Sweeps on each side of a member's frame that [`still_member`] compares.
+const STILL_TEST_FRAMES: usize = 2;
+
+/// Whether point `p` of frame `j`, taken onto a body with per-frame `poses` (body -> fit), is a
+/// still point: see [`STILL_MATCH_M`] and [`STILL_MOVED_OFF_M`].
+fn still_member(p: &Point, j: usize, poses: &[Rigid], trees: &[&KdTree]) -> bool {
+    let t = poses.len();
+    let to_body = poses[j].inverse();
+    let in_body = to_body.apply(p);
+    let (mut moved_m, mut compared) = (0.0, 0usize);
+    for n in j.saturating_sub(STILL_TEST_FRAMES)..(j + STILL_TEST_FRAMES + 1).min(t) {
+        if n == j {
+            continue;
+        }
+        let still = trees[n].nearest(p).map_or(f32::INFINITY, |h| h.dist2.sqrt());
+        if still > STILL_MATCH_M {
+            return false;
+        }
+        let moved = poses[n].apply(&in_body);
+        moved_m += trees[n].nearest(&moved).map_or(1.0, |h| f64::from(h.dist2.sqrt()).min(1.0));
+        compared += 1;
+    }
+    compared > 0 && moved_m / compared as f64 >= STILL_MOVED_OFF_M
 }
 
 /// Rounds of looking again for a body in the frames its tracking lost.
@@ -742,6 +783,65 @@ const MIN_STEP_FOR_HEADING_M: f64 = 0.1;
 /// read off a few noisy frames is clamped to it.
 const MIN_TURN_RADIUS_M: f64 = 4.0;
 
+/// The registrations of a body may lie this close (m, root mean square at the centre) to one
+/// path for the whole sequence for [`straight_path`] to take it: about the spread of good
+/// registrations of a car (a sparse sweep, a partial view).
+const STRAIGHT_PATH_RMS_M: f64 = 0.1;
+
+/// Only a body slower than this (m per frame; 3 m/s at 10 Hz: pedestrians, cyclists) takes one
+/// straight path for the whole sequence. A car's registrations lie within a decimetre of a line
+/// while it goes straight and then turns once out of view, and a line carried on from them ended
+/// turning cars metres off where the local fit's curvature had caught the turn's onset
+/// (docs/benchmarks.md section 16).
+const MAX_LINE_STEP_M: f64 = 0.3;
+
+/// A body's straight path at constant speed over the whole sequence (x and y of its centre).
+struct StraightPath {
+    /// The time the path is expressed about (the mean observed time).
+    mid_time: f64,
+    /// Centre (x, y) at `mid_time`.
+    at_mid: [f64; 2],
+    /// Velocity (x, y), per unit of time.
+    velocity: [f64; 2],
+}
+
+impl StraightPath {
+    /// Speed (units of position per unit of time).
+    fn speed(&self) -> f64 {
+        self.velocity[0].hypot(self.velocity[1])
+    }
+
+    /// Coordinate `axis` (0 = x, 1 = y) at `time` as the local fits of [`smooth_poses`] give it:
+    /// value, first derivative and half the second derivative, in powers of (time' - time).
+    fn taylor(&self, axis: usize, time: f64) -> Vec<f64> {
+        vec![self.at_mid[axis] + self.velocity[axis] * (time - self.mid_time), self.velocity[axis], 0.0]
+    }
+}
+
+/// A straight line at constant speed through the centres `pos` of the frames `pool` when it holds
+/// them within [`STRAIGHT_PATH_RMS_M`] (root mean square) and there are at least five; `None` for
+/// a motion no such path follows (a car that turns or brakes inside the sequence). A constant
+/// acceleration was tried too: a turn's first half passes as one, and its curvature carried past
+/// the observed span swung turning cars off by metres (docs/benchmarks.md section 16).
+fn straight_path(pool: &[usize], times: &[f64], pos: &[[f64; 3]]) -> Option<StraightPath> {
+    if pool.len() < 5 {
+        return None;
+    }
+    let mid_time = pool.iter().map(|&j| times[j]).sum::<f64>() / pool.len() as f64;
+    let xs: Vec<f64> = pool.iter().map(|&j| times[j] - mid_time).collect();
+    let line: [Vec<f64>; 2] =
+        std::array::from_fn(|axis| poly_fit(&xs, &pool.iter().map(|&j| pos[j][axis]).collect::<Vec<_>>(), 1));
+    let path = StraightPath { mid_time, at_mid: [line[0][0], line[1][0]], velocity: [line[0][1], line[1][1]] };
+    let squared: f64 = pool
+        .iter()
+        .map(|&j| {
+            let (x, y) = (path.taylor(0, times[j])[0], path.taylor(1, times[j])[0]);
+            (x - pos[j][0]).powi(2) + (y - pos[j][1]).powi(2)
+        })
+        .sum();
+    ((squared / pool.len() as f64).sqrt() <= STRAIGHT_PATH_RMS_M).then_some(path)
+}
+
 /// `a - b` wrapped to (-pi, pi].
 fn angle_diff(a: f64, b: f64) -> f64 {
     let d = (a - b).rem_euclid(std::f64::consts::TAU);
@@ -825,8 +925,22 @@ fn smooth_poses(
     let mut gaps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0.0).collect();
     gaps.sort_by(f64::total_cmp);
     let frame_gap = gaps.get(gaps.len() / 2).copied().unwrap_or(1.0);
-    let fits: Vec<Option<[Vec<f64>; 4]>> =
+    let mut fits: Vec<Option<[Vec<f64>; 4]>> =
         (0..poses.len()).map(|j| local_fit(&pool, times[j].clamp(first, last), None)).collect();
+    // One path for the whole sequence for a slow body whose registrations lie on it: a straight
+    // line at constant speed (a pedestrian walking by). Its position and velocity at a frame come
+    // from every observed frame instead of eight, so registration noise averages out and the
+    // motion carried on past the observed span starts from a steadier velocity.
+    let straight = straight_path(&pool, times, &pos).filter(|path| path.speed() * frame_gap <= MAX_LINE_STEP_M);
+    if let Some(path) = &straight {
+        for (j, fit) in fits.iter_mut().enumerate() {
+            if let Some(c) = fit {
+                let at = times[j].clamp(first, last);
+                c[0] = path.taylor(0, at);
+                c[1] = path.taylor(1, at);
+            }
+        }
+    }
     // Direction of travel (rad) at a frame, when the body moves fast enough there for it to mean
     // anything.
     let travel = |c: &[Vec<f64>; 4]| -> Option<f64> {
@@ -844,7 +958,10 @@ fn smooth_poses(
     });
     for j in 0..poses.len() {
         let Some(c) = &fits[j] else { continue };
-        let kept = observed[j] && inliers.contains(&j);
+        // A well-registered frame keeps its registered place, unless the whole-sequence path
+        // holds; it keeps its registered heading when too slow for a direction of travel.
+        let registered = observed[j] && inliers.contains(&j);
+        let kept = registered && straight.is_none();
         let edge = times[j].clamp(first, last);
         // Outside the observed span the motion goes on from its end, up to the horizon: a body
         // that left the view is not driven on for the rest of a long log.
@@ -873,6 +990,8 @@ fn smooth_poses(
             _ => {
                 if kept {
                     (pos[j][0], pos[j][1], yaws[j])
+                } else if registered {
+                    (c[0][0], c[1][0], yaws[j])
                 } else {
                     let at_edge = |c: &[f64]| c[0] + c[1] * dt;
                     (at_edge(&c[0]), at_edge(&c[1]), at_edge(&c[2]))
@@ -1156,5 +1275,94 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_slow_body_on_a_straight_line_takes_it_and_registration_noise_averages_out() {
+        // A pedestrian at 1.3 m/s, 25 frames at 10 Hz, registrations off by up to 8 cm.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+        let truth: Vec<Rigid> = times.iter().map(|&t| planar(5.0 + 1.2 * t, 2.0 + 0.5 * t, 0.4)).collect();
+        let mut poses: Vec<Rigid> = truth
+            .iter()
+            .map(|p| {
+                let mut q = *p;
+                q.translation[0] += rng.random_range(-0.08..0.08);
+                q.translation[1] += rng.random_range(-0.08..0.08);
+                q
+            })
+            .collect();
+        let mut observed = vec![true; 25];
+        // Walked out of view after frame 17: carried on along the line.
+        observed[18..].fill(false);
+        let error = |poses: &[Rigid], j: usize| {
+            (poses[j].translation[0] - truth[j].translation[0]).hypot(poses[j].translation[1] - truth[j].translation[1])
+        };
+        let raw_mean = (0..18).map(|j| error(&poses, j)).sum::<f64>() / 18.0;
+        smooth_poses(&mut poses, &observed, &times, 3.0, [0.0; 3], 0.3);
+        let mean = (0..18).map(|j| error(&poses, j)).sum::<f64>() / 18.0;
+        let worst = (0..25).map(|j| error(&poses, j)).fold(0.0, f64::max);
+        // Each registration alone is up to 0.11 m off (0.06 m on average); the line through 18 of
+        // them is within half the largest of that at every frame, its prediction 0.7 s past the
+        // last one included, and on average within half of a registration's error.
+        assert!(worst < 0.06, "worst {worst:.3} m");
+        assert!(mean < 0.5 * raw_mean, "mean {mean:.3} m vs {raw_mean:.3} m registered");
+    }
+
+    #[test]
+    fn a_turning_or_fast_body_takes_no_straight_line() {
+        let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+        let pool: Vec<usize> = (0..25).collect();
+        let centres = |f: &dyn Fn(f64) -> (f64, f64)| -> Vec<[f64; 3]> {
+            times
+                .iter()
+                .map(|&t| {
+                    let (x, y) = f(t);
+                    [x, y, 0.0]
+                })
+                .collect()
+        };
+        // 8 m/s turning at 0.3 rad/s: 0.7 m from the chord of its arc.
+        let (v, w) = (8.0, 0.3);
+        let arc = centres(&|t| (v / w * (w * t).sin(), v / w * (1.0 - (w * t).cos())));
+        assert!(straight_path(&pool, &times, &arc).is_none());
+        // Straight at 1.2 m/s: taken, at the right speed.
+        let walk = centres(&|t| (1.2 * t, 0.0));
+        let line = straight_path(&pool, &times, &walk).expect("a straight walk is one line");
+        assert!((line.speed() - 1.2).abs() < 1e-9);
+        // Straight at 10 m/s: a line too, but too fast for smooth_poses to take it (0.3 m per frame).
+        let drive = straight_path(&pool, &times, &centres(&|t| (10.0 * t, 0.0))).unwrap();
+        assert!(drive.speed() * 0.1 > MAX_LINE_STEP_M);
+    }
+
+    #[test]
+    fn still_points_leave_a_body_and_its_flank_sliding_along_itself_stays() {
+        // A post (0.6 x 0.6 x 2 m, static, resampled each frame) half a metre beside the path
+        // of a car-sized box driving past it at 10 m/s, 10 Hz; the box's poses are its true
+        // motion, as a body that took the post in would have them.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let frames_n = 6;
+        let car = [4.2f32, 1.8, 1.5];
+        let post_points = 2000;
+        let poses: Vec<Rigid> = (0..frames_n).map(|k| planar(k as f64, 0.0, 0.0)).collect();
+        let frames: Vec<Vec<Point>> = (0..frames_n)
+            .map(|k| {
+                let mut f: Vec<Point> = box_surface(&mut rng, post_points, [0.6, 0.6, 2.0])
+                    .iter()
+                    .map(|p| [p[0] + 3.0, p[1] + 2.3, p[2]])
+                    .collect();
+                f.extend(box_surface(&mut rng, 3000, car).iter().map(|p| poses[k].apply(p)));
+                f
+            })
+            .collect();
+        let trees: Vec<KdTree> = frames.iter().map(|f| KdTree::new(f)).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let j = 3;
+        let post = frames[j].iter().take(post_points).filter(|p| still_member(p, j, &poses, &trees)).count();
+        assert!(post > 1900, "{post} of {post_points} post points judged still");
+        // The box's points: its back and front faces move off themselves; its flanks and top
+        // slide along themselves, lie on the neighbouring sweeps both ways, and stay.
+        let on_car = frames[j].iter().skip(post_points).filter(|p| still_member(p, j, &poses, &trees)).count();
+        assert!(on_car < 60, "{on_car} of 3000 car points judged still");
     }
 }
