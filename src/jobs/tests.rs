@@ -34,6 +34,7 @@ impl Fitter for SlowFitter {
                 validation_loss: None,
                 fewest_live_units: None,
                 rigid_tracks: None,
+                window: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });
@@ -260,4 +261,56 @@ fn a_pool_runs_every_submitted_job_and_stops_cleanly() {
         let job = f.queue.store().get_job(id).unwrap().unwrap();
         assert_eq!(job.status, JobStatus::Succeeded, "{:?}", job.error);
     }
+}
+
+/// Issue 21's case, at a scale a test affords: a 100-frame log with poses, one default MBNT job
+/// (iterations and network cut down, 25-frame windows). The job succeeds with one model of the
+/// whole log, its progress has counted the windows, and every frame's points answer at every
+/// frame time, finite; labels exist for every frame.
+#[test]
+fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
+    let sim = crate::fit::windows::tests::small_log(21, 100);
+    let dir = std::env::temp_dir().join(format!("mbnt-jobs-{}", Uuid::new_v4()));
+    let store = SqliteStore::open(&dir).unwrap();
+    let mut sink = store.begin_sequence().unwrap();
+    for frame in &sim.frames {
+        sink.put_frame(frame).unwrap();
+    }
+    let meta =
+        SequenceMeta { name: None, timestamps_s: Some(sim.timestamps_s.clone()), poses: Some(sim.ego_poses.clone()) };
+    let sequence = sink.commit(meta).unwrap().id;
+    let f = Fixture { dir, queue: JobQueue::new(Arc::new(store)), sequence };
+    let (w, _) = worker(&f, CoreFitter);
+    let params = FitParams {
+        iterations: Some(3),
+        hidden_width: Some(16),
+        hidden_layers: Some(2),
+        sample_points: Some(1024),
+        cycle_sample_points: Some(256),
+        ..FitParams::default()
+    }
+    .check(Method::Mbnt)
+    .unwrap();
+    assert_eq!(params.window_frames, 25, "the default window");
+    let job = JobQueue::new_job(f.sequence, Method::Mbnt, params);
+    f.queue.submit(&job).unwrap();
+    let done = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(done.status, JobStatus::Succeeded, "{:?}", done.error);
+    let window = done.progress.window.expect("the progress of a windowed fit names its window");
+    assert_eq!((window.window, window.windows), (4, 5), "100 frames: 5 windows of 25");
+    let model = FittedModel::from_bytes(&f.queue.store().read_model(job.id).unwrap()).unwrap();
+    assert_eq!(model.time_axis().frames(), 100);
+    assert_eq!(model.windows().len(), 5);
+    let times = &sim.timestamps_s;
+    for (k, frame) in sim.frames.iter().enumerate() {
+        let some: Vec<[f32; 3]> = frame.iter().step_by(200).copied().collect();
+        let answers = model.positions(&some, times[k], times).unwrap();
+        assert_eq!(answers.len(), some.len() * 100);
+        assert!(answers.iter().flatten().all(|c| c.is_finite()), "frame {k}");
+    }
+    let flows = model.scene_flow(&sim.frames);
+    let ids = model.object_ids(&sim.frames);
+    assert_eq!((flows.len(), ids.len()), (99, 100));
+    assert!((0..100).all(|k| ids[k].len() == sim.frames[k].len()));
+    assert!(flows.iter().flatten().flatten().all(|c| c.is_finite()));
 }

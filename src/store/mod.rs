@@ -13,7 +13,7 @@ pub mod sqlite;
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
-use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams};
+use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams, WindowProgress};
 use crate::geometry::Point;
 
 pub use sqlite::SqliteStore;
@@ -120,6 +120,11 @@ pub struct JobProgress {
     /// written before the field existed).
     #[serde(default)]
     pub rigid_tracks: Option<TrackingProgress>,
+    /// Set while a sequence longer than `window_frames` is fitted window by window: the
+    /// window the iteration fields are about and the windows done; `fraction` and `eta_s` are
+    /// then the whole log's (absent in records written before the field existed).
+    #[serde(default)]
+    pub window: Option<WindowProgress>,
 }
 
 /// A job: one fit of one method to one sequence.
