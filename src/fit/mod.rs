@@ -128,10 +128,7 @@ pub fn fit_sequence(
     params: &ValidFitParams,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
-    if windows::is_windowed(sequence, params) {
-        return windows::fit_windows(sequence, method, params, on_progress);
-    }
-    fit_single(sequence, method, params, on_progress)
+    windows::fit_sequence_resuming(sequence, method, params, &mut windows::NoFinishedWindows, on_progress)
 }
 
 /// One fit of every frame of `sequence` (a sequence of at most one window, or one window of a

@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 
 use super::{Fitter, JobQueue};
+use crate::fit::windows::FinishedWindows;
 use crate::fit::{FitError, Progress, Sequence};
+use crate::model::FittedModel;
 use crate::store::{JobOutcome, JobProgress, JobRecord, StoreError};
 
 /// How often a running job's progress is written to the store.
@@ -84,6 +86,7 @@ impl Worker {
             }
         };
         let (method, params) = (job.method, job.params.clone());
+        let mut finished = StoredWindows { store: &*store, job: job.id };
         let started = Instant::now();
         let mut last_persist = started;
         let mut last_publish = started;
@@ -144,8 +147,9 @@ impl Worker {
             }
         };
         let fitter = &*self.fitter;
+
         let result = std::panic::catch_unwind(AssertUnwindSafe(|| {
-            self.pool.install(|| fitter.fit(&sequence, method, &params, &mut on_progress))
+            self.pool.install(|| fitter.fit_resuming(&sequence, method, &params, &mut finished, &mut on_progress))
         }));
         if let Some(e) = store_error {
             tracing::warn!(error = %e, "progress could not be stored during the fit");
@@ -186,6 +190,48 @@ impl Worker {
             }
         };
         store.finish_job(job.id, outcome)
+    }
+}
+
+/// The finished windows of one job, kept in the store (`windows/{job}/` of the data directory)
+/// until the job finishes, so that a job run again after a shutdown or a crash skips them. A
+/// kept window that cannot be read or written is fitted again: keeping them saves time only.
+struct StoredWindows<'a> {
+    store: &'a dyn crate::store::Store,
+    job: uuid::Uuid,
+}
+
+impl StoredWindows<'_> {
+    fn key(first_frame: usize, frames: usize) -> String {
+        format!("{first_frame}-{frames}")
+    }
+}
+
+impl FinishedWindows for StoredWindows<'_> {
+    fn take(&mut self, first_frame: usize, frames: usize) -> Option<FittedModel> {
+        let bytes = match self.store.read_window_model(self.job, &Self::key(first_frame, frames)) {
+            Ok(bytes) => bytes?,
+            Err(e) => {
+                tracing::warn!(error = %e, first_frame, "could not read a kept window; fitting it again");
+                return None;
+            }
+        };
+        match FittedModel::from_bytes(&bytes) {
+            Ok(model) if model.time_axis().frames() == frames => Some(model),
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!(error = %e, first_frame, "a kept window does not load; fitting it again");
+                None
+            }
+        }
+    }
+
+    fn keep(&mut self, first_frame: usize, frames: usize, model: &FittedModel) {
+        // A window with a non-finite number is not kept; the whole model's check fails the job.
+        let Ok(bytes) = model.to_bytes() else { return };
+        if let Err(e) = self.store.put_window_model(self.job, &Self::key(first_frame, frames), &bytes) {
+            tracing::warn!(error = %e, first_frame, "could not keep a finished window");
+        }
     }
 }
 
