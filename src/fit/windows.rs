@@ -66,23 +66,6 @@ impl FinishedWindows for NoFinishedWindows {
     fn keep(&mut self, _first_frame: usize, _frames: usize, _model: &FittedModel) {}
 }
 
-/// [`fit_sequence`](super::fit_sequence), taking the windows an earlier run of the same fit
-/// finished from `finished` and keeping there each window it finishes. A sequence of at most
-/// one window is one fit, as in `fit_sequence`.
-pub fn fit_sequence_resuming(
-    sequence: &Sequence,
-    method: Method,
-    params: &ValidFitParams,
-    finished: &mut dyn FinishedWindows,
-    on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
-) -> Result<FittedModel, FitError> {
-    if is_windowed(sequence, params) {
-        fit_windows(sequence, method, params, finished, on_progress)
-    } else {
-        fit_single(sequence, method, params, on_progress)
-    }
-}
-
 /// The first frame of each window of a log of `frames` frames, for windows of `window_frames`
 /// frames overlapping by at least `overlap_frames` (`1 <= overlap_frames < window_frames`): one
 /// window `[0]` when the log fits in one.
@@ -103,15 +86,21 @@ pub fn is_windowed(sequence: &Sequence, params: &ValidFitParams) -> bool {
     sequence.frames.len() > params.window_frames
 }
 
-/// Fits `sequence` window by window and stitches the windows; see the module's documentation.
-/// Progress carries [`Progress::window`]; a `Break` from `on_progress` cancels the fit.
-pub(super) fn fit_windows(
+/// [`fit_sequence`](super::fit_sequence), taking the windows an earlier run of the same fit
+/// finished from `finished` and keeping there each window it finishes. A sequence of at most
+/// one window is one fit, as in `fit_sequence`; a longer one is fitted window by window and
+/// stitched (see the module's documentation). Progress then carries [`Progress::window`]; a
+/// `Break` from `on_progress` cancels the fit.
+pub fn fit_sequence_resuming(
     sequence: &Sequence,
     method: Method,
     params: &ValidFitParams,
     finished: &mut dyn FinishedWindows,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
+    if !is_windowed(sequence, params) {
+        return fit_single(sequence, method, params, on_progress);
+    }
     validate_sequence(sequence)?;
     let started = std::time::Instant::now();
     let coordinates = fit_coordinates(sequence, params)?;

@@ -328,17 +328,7 @@ fn a_restarted_job_keeps_its_finished_windows() {
     let shutdown = Arc::new(AtomicBool::new(false));
     let w = Worker::new(f.queue.clone(), fitter.clone(), 1, shutdown).unwrap();
     // 12 frames in windows of 6 overlapping by at least 2: windows from frames 0, 3 and 6.
-    let params = FitParams {
-        iterations: Some(3),
-        hidden_width: Some(16),
-        hidden_layers: Some(2),
-        sample_points: Some(1024),
-        window_frames: Some(6),
-        window_overlap_frames: Some(2),
-        ..FitParams::default()
-    }
-    .check(Method::Mbnt)
-    .unwrap();
+    let params = crate::fit::windows::tests::quick_params(6, 2);
     let job = JobQueue::new_job(f.sequence, Method::Mbnt, params);
     f.queue.submit(&job).unwrap();
     // The first run stops in window 2 as a shutdown would: the job goes back to the queue with
@@ -368,17 +358,9 @@ fn a_restarted_job_keeps_its_finished_windows() {
 fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
     let (f, sim) = log_fixture(21, 100);
     let (w, _) = worker(&f, CoreFitter);
-    let params = FitParams {
-        iterations: Some(3),
-        hidden_width: Some(16),
-        hidden_layers: Some(2),
-        sample_points: Some(1024),
-        cycle_sample_points: Some(256),
-        ..FitParams::default()
-    }
-    .check(Method::Mbnt)
-    .unwrap();
-    assert_eq!(params.window_frames, 25, "the default window");
+    // The default windows.
+    use crate::model::params::{DEFAULT_WINDOW_FRAMES, DEFAULT_WINDOW_OVERLAP_FRAMES};
+    let params = crate::fit::windows::tests::quick_params(DEFAULT_WINDOW_FRAMES, DEFAULT_WINDOW_OVERLAP_FRAMES);
     let job = JobQueue::new_job(f.sequence, Method::Mbnt, params);
     f.queue.submit(&job).unwrap();
     let done = w.try_execute_next().unwrap().unwrap();

@@ -170,15 +170,7 @@ impl FittedModel {
             report.rigid_tracks += r.rigid_tracks;
             report.rigid_tracks_seconds += r.rigid_tracks_seconds;
             report.free_points += r.free_points;
-            let (p, q) = (&mut report.phase_times, &r.phase_times);
-            p.mlp_forward_s += q.mlp_forward_s;
-            p.mlp_backward_s += q.mlp_backward_s;
-            p.nearest_s += q.nearest_s;
-            p.cycle_s += q.cycle_s;
-            p.multibody_s += q.multibody_s;
-            p.optimiser_s += q.optimiser_s;
-            p.mlp_gflop += q.mlp_gflop;
-            p.total_s += q.total_s;
+            report.phase_times += r.phase_times;
         }
         report.moving_bodies = bodies.len();
         let still_world = windows.iter().any(|w| w.model.still_world);
