@@ -466,12 +466,26 @@ mod tests {
         // And back.
         let back = stitched.positions(&[[5.2, 0.1, 0.0]], 5.0, &[0.0]).unwrap();
         assert!(back[0].iter().zip(&[0.2, 0.1, 0.0]).all(|(g, w)| (g - w).abs() < 1e-4), "{back:?}");
-        // Through the file format.
-        let loaded = FittedModel::from_bytes(&stitched.to_bytes().unwrap()).unwrap();
+        // Through the file format (version 2, each window a version 1 file).
+        let bytes = stitched.to_bytes().unwrap();
+        assert!(bytes.starts_with(b"MBNTMDL2"));
+        let window_at = bytes.windows(8).skip(8).position(|w| w == b"MBNTMDL1").unwrap() + 8;
+        let mut nested = bytes.clone();
+        nested[window_at..window_at + 8].copy_from_slice(b"MBNTMDL2");
+        let e = FittedModel::from_bytes(&nested).unwrap_err();
+        assert!(e.contains("window 0 is not the model of one fit"), "{e}");
+        let loaded = FittedModel::from_bytes(&bytes).unwrap();
         assert_eq!(loaded.bodies(), stitched.bodies());
         assert_eq!(
             loaded.positions(&[[0.2, 0.1, 0.0]], 0.0, &[5.0]).unwrap(),
             stitched.positions(&[[0.2, 0.1, 0.0]], 0.0, &[5.0]).unwrap()
         );
+        // A window holding a NaN is refused at save time, naming the window.
+        let mut poisoned = stitched.clone();
+        if let Motion::Windows(windows) = &mut poisoned.motion {
+            windows[1].model.bodies[0].poses[3].translation[0] = f64::NAN;
+        }
+        let e = poisoned.to_bytes().unwrap_err().to_string();
+        assert!(e.contains("window 1 (from frame 2): moving body 0, pose at frame 3"), "{e}");
     }
 }
