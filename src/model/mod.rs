@@ -262,11 +262,25 @@ impl FittedModel {
         if let Motion::Windows(windows) = &self.motion {
             return windows::positions(self, windows, points, t_obs, times);
         }
+        Ok(self.positions_carried(points, t_obs, times, None)?.0)
+    }
+
+    /// [`FittedModel::positions`] of a model of one fit (the points checked finite), where
+    /// `carried[i]`, when given and set, is the body point i is known to lie on (a stitched
+    /// model's previous window put it there): it follows that body whether or not it lies near the
+    /// body's points of `t_obs`. Also returns the body each point followed.
+    pub(super) fn positions_carried(
+        &self,
+        points: &[Point],
+        t_obs: f64,
+        times: &[f64],
+        carried: Option<&[Option<usize>]>,
+    ) -> Result<(Vec<Point>, Vec<Option<usize>>), QueryError> {
         let u_obs = self.time_axis.to_frame_index(t_obs)?;
         let u_times = times.iter().map(|&t| self.time_axis.to_frame_index(t)).collect::<Result<Vec<_>, _>>()?;
         let mut out = vec![[0f32; 3]; points.len() * times.len()];
         if times.is_empty() {
-            return Ok(out);
+            return Ok((out, vec![None; points.len()]));
         }
         // With poses, queries go into the fit's frame and answers come back into the sensor
         // frame of each queried time.
@@ -290,7 +304,14 @@ impl FittedModel {
             self.network_positions_into(points, u_obs, &u_times, &mut out);
         }
         self.apply_tracks(points, u_obs, &u_times, &mut out);
-        self.apply_bodies(points, u_obs, &u_times, &mut out);
+        let mut owners =
+            if self.bodies.is_empty() { vec![None; points.len()] } else { self.body_members(points, u_obs) };
+        if let Some(carried) = carried {
+            for (owner, known) in owners.iter_mut().zip(carried) {
+                *owner = known.filter(|&n| n < self.bodies.len()).or(*owner);
+            }
+        }
+        self.apply_bodies(points, &owners, u_obs, &u_times, &mut out);
         if let Some(poses) = &self.frame_poses {
             let to_sensor: Vec<Rigid> = u_times.iter().map(|&u| pose_at(poses, u).inverse()).collect();
             for row in out.chunks_mut(times.len()) {
@@ -299,7 +320,7 @@ impl FittedModel {
                 }
             }
         }
-        Ok(out)
+        Ok((out, owners))
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a tracked cluster
@@ -360,12 +381,9 @@ impl FittedModel {
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a moving body at
-    /// `u_obs` with the body's motion from `u_obs` to each queried time.
-    fn apply_bodies(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
-        if self.bodies.is_empty() {
-            return;
-        }
-        let owners = self.body_members(points, u_obs);
+    /// `u_obs` (`owners`: the body of each point, if any) with the body's motion from `u_obs` to
+    /// each queried time.
+    fn apply_bodies(&self, points: &[Point], owners: &[Option<usize>], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
         for (n, body) in self.bodies.iter().enumerate() {
             let back = pose_at(&body.poses, u_obs).inverse();
             let motions: Vec<Rigid> = u_times.iter().map(|&u| pose_at(&body.poses, u).compose(&back)).collect();

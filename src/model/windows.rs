@@ -14,7 +14,10 @@
 //!   between windows (each window's `positions` takes and gives them), so the chaining needs no
 //!   knowledge of a window's fit coordinates, with or without poses. A trajectory is continuous
 //!   at a hand-over: at the hand-over time the next window is asked for its own time, the
-//!   identity;
+//!   identity. A point that followed a moving body carries the body's object into the next
+//!   window and follows that window's part of the object: whether a point lies on a body is
+//!   decided once, at the time it was observed, as in a model of one fit, and not again at each
+//!   hand-over (the sweep there may show the body from another side, away from the point);
 //! - **object identity**: a moving body of one window and one of the next are one object when
 //!   their member points lie on each other in the overlap's frames ([`link_bodies`]); the
 //!   stitched model lists each object once over the whole log with the labels' ids.
@@ -217,28 +220,37 @@ pub(super) fn positions(
     let owners: Vec<usize> = u_times.iter().map(|&u| owner(&handoffs, u)).collect();
     let lo = owners.iter().copied().min().expect("times not empty").min(home);
     let hi = owners.iter().copied().max().expect("times not empty").max(home);
-    // Per window from lo to hi: the points (sensor coordinates) and the log time at which that
-    // window takes them over.
-    let mut entry: Vec<Option<(Vec<Point>, f64)>> = vec![None; hi - lo + 1];
-    entry[home - lo] = Some((points.to_vec(), t_obs));
-    let hand_over =
-        |from: usize, current: &(Vec<Point>, f64), handoff: usize| -> Result<(Vec<Point>, f64), QueryError> {
-            let window = &windows[from];
-            let t_handoff = axis.frame_time(handoff);
-            let moved = window.model.positions(
-                &current.0,
-                window.local_time(axis, current.1),
-                &[window.local_time(axis, t_handoff)],
-            )?;
-            Ok((moved, t_handoff))
-        };
+    // Per window from lo to hi: the points (sensor coordinates), the log time at which that
+    // window takes them over, and the body of that window each one arrives on.
+    let mut entry: Vec<Option<Entry>> = vec![None; hi - lo + 1];
+    entry[home - lo] = Some(Entry { points: points.to_vec(), t: t_obs, carried: None });
+    let hand_over = |from: usize, to: usize, current: &Entry, handoff: usize| -> Result<Entry, QueryError> {
+        let window = &windows[from];
+        let t_handoff = axis.frame_time(handoff);
+        let (moved, owners) = window.model.positions_carried(
+            &current.points,
+            window.local_time(axis, current.t),
+            &[window.local_time(axis, t_handoff)],
+            current.carried.as_deref(),
+        )?;
+        // The next window's part of each point's object, if it has one.
+        let next = &windows[to];
+        let carried = owners
+            .iter()
+            .map(|owner| {
+                let object = window.object_ids[(*owner)?];
+                next.object_ids.iter().position(|&o| o == object)
+            })
+            .collect();
+        Ok(Entry { points: moved, t: t_handoff, carried: Some(carried) })
+    };
     for w in home + 1..=hi {
         let from = entry[w - 1 - lo].as_ref().expect("filled in order");
-        entry[w - lo] = Some(hand_over(w - 1, from, handoffs[w - 1])?);
+        entry[w - lo] = Some(hand_over(w - 1, w, from, handoffs[w - 1])?);
     }
     for w in (lo..home).rev() {
         let from = entry[w + 1 - lo].as_ref().expect("filled in order");
-        entry[w - lo] = Some(hand_over(w + 1, from, handoffs[w])?);
+        entry[w - lo] = Some(hand_over(w + 1, w, from, handoffs[w])?);
     }
     let n_times = times.len();
     for w in lo..=hi {
@@ -247,9 +259,10 @@ pub(super) fn positions(
             continue;
         }
         let window = &windows[w];
-        let (at, t_at) = entry[w - lo].as_ref().expect("every window from lo to hi is entered");
+        let at = entry[w - lo].as_ref().expect("every window from lo to hi is entered");
         let local: Vec<f64> = asked.iter().map(|&j| window.local_time(axis, times[j])).collect();
-        let answers = window.model.positions(at, window.local_time(axis, *t_at), &local)?;
+        let (answers, _) =
+            window.model.positions_carried(&at.points, window.local_time(axis, at.t), &local, at.carried.as_deref())?;
         for i in 0..points.len() {
             for (n, &j) in asked.iter().enumerate() {
                 out[i * n_times + j] = answers[i * asked.len() + n];
@@ -257,6 +270,18 @@ pub(super) fn positions(
         }
     }
     Ok(out)
+}
+
+/// Where a query enters a window of a stitched model.
+#[derive(Debug, Clone)]
+struct Entry {
+    /// The query points (sensor coordinates of time `t`).
+    points: Vec<Point>,
+    /// The log's time at which the window takes them over.
+    t: f64,
+    /// Per point, the body of the window it arrives on (the previous window's body of the same
+    /// object); `None` for the window the points were observed in.
+    carried: Option<Vec<Option<usize>>>,
 }
 
 /// [`FittedModel::frame_object_ids`] of a stitched model: the window owning frame `k` labels its
@@ -461,6 +486,17 @@ mod tests {
         // A point on the car at frame 0 follows it to frame 5, through the hand-over at frame 3.
         let at = stitched.positions(&[[0.2, 0.1, 0.0]], 0.0, &[2.5, 3.0, 5.0]).unwrap();
         for (got, want) in at.iter().zip([[2.7, 0.1, 0.0], [3.2, 0.1, 0.0], [5.2, 0.1, 0.0]]) {
+            assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{at:?}");
+        }
+        // A point of the car seen only in frame 0 (its rear: the first window's frame-0 members
+        // hold it, no later sweep does) follows the car through the hand-over: it arrives 3 m from
+        // the second window's members of frame 3 but carries the car's object with it.
+        let mut seen_once = stitched.clone();
+        if let Motion::Windows(windows) = &mut seen_once.motion {
+            windows[0].model.bodies[0].members[0].push([0.0, 3.0, 0.0]);
+        }
+        let at = seen_once.positions(&[[0.1, 3.0, 0.0]], 0.0, &[3.0, 5.0]).unwrap();
+        for (got, want) in at.iter().zip([[3.1, 3.0, 0.0], [5.1, 3.0, 0.0]]) {
             assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{at:?}");
         }
         // And back.
