@@ -852,6 +852,30 @@ mod tests {
         }
     }
 
+    #[test]
+    fn spans_score_each_start_frame_against_its_own_truth() {
+        let sim = simulate(&SimParams { seed: 5, frames: 10, ..SimParams::default() }).unwrap();
+        let seq = Labelled::from_sim("seed 5".into(), &sim).unwrap().with_spans(&sim, 4, 3).unwrap();
+        // Spans 0 -> 4 and 3 -> 7; 6 -> 10 would run past the last frame (9).
+        let bounds: Vec<(usize, usize)> = seq.spans.iter().map(|s| (s.start, s.end)).collect();
+        assert_eq!(bounds, vec![(0, 4), (3, 7)]);
+        let evaluated = evaluated_points(&seq, &FitParams::default().check(Method::Mbnt).unwrap()).unwrap();
+        let exact = Prediction { spans: seq.spans.iter().map(|s| s.end_positions.clone()).collect(), ..truth_of(&seq) };
+        let result = score("truth", &seq, &evaluated, &exact, None);
+        assert_eq!(result.spans.len(), 2);
+        for span in &result.spans {
+            assert!(span.long_term.points > 1000, "{span:?}");
+            assert!(span.long_term.epe_m < 1e-6 && span.long_term.acc_0_5 == 1.0, "{span:?}");
+        }
+        // Points left where they were seen score as far off as the span's true motion.
+        let still =
+            Prediction { spans: seq.spans.iter().map(|s| sim.frames[s.start].clone()).collect(), ..truth_of(&seq) };
+        let held = score("held", &seq, &evaluated, &still, None);
+        assert!(held.spans.iter().all(|s| s.long_term.epe_m > 0.5), "{:?}", held.spans);
+        // A baseline without span predictions has no span rows.
+        assert!(score("zero", &seq, &evaluated, &zero_motion(&seq), None).spans.is_empty());
+    }
+
     fn truth_of(seq: &Labelled) -> Prediction {
         Prediction {
             flows: seq.flows.clone(),
