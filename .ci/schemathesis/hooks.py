@@ -42,6 +42,8 @@ DATA_DEPENDENT = {
     ("createSequence", "timestamps", "strictly increasing"),
     ("createSequence", "poses", "poses for"),  # not one per frame
     ("createJob", "sequence_id", "no sequence with id"),
+    # smaller than window_frames (a relation between two fields); the schema says each one's range
+    ("createJob", "params.window_overlap_frames", "must be in [1, "),
     ("queryJob", "frame", "does not exist"),
     ("queryJob", "indices", "out of range"),
     ("queryJob", "t", ""),  # outside the fitted time axis
@@ -89,13 +91,18 @@ def _storable_sequence(body):
 
 
 def _runnable_job(body):
-    """A schema-valid job changed to one within the server's iteration limit."""
+    """A schema-valid job changed to one within the server's iteration limit, its window overlap
+    smaller than its window."""
     if not isinstance(body, dict) or not isinstance(body.get("params", {}), dict):
         return body
     params = dict(body.get("params", {}))
     iterations = params.get("iterations")
     if not isinstance(iterations, int) or iterations > MAX_ITERATIONS:
         params["iterations"] = MAX_ITERATIONS
+    # The overlap must be smaller than the window (25 by default), which the schema cannot say.
+    overlap = params.get("window_overlap_frames")
+    if isinstance(overlap, int) and overlap >= params.get("window_frames", 25):
+        params.pop("window_overlap_frames")
     return {**body, "params": params}
 
 

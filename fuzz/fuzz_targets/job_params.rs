@@ -25,6 +25,8 @@ fuzz_target!(|input: &[u8]| {
     let method = Method::ALL[selector as usize % Method::ALL.len()];
     let Ok(valid) = params.check(method) else { return };
     assert!((1..=MAX_ITERATIONS).contains(&valid.iterations), "iterations {}", valid.iterations);
+    // Windows overlap and each keeps a frame of its own.
+    assert!((1..valid.window_frames).contains(&valid.window_overlap_frames), "window overlap");
     // The store keeps checked parameters as JSON. Unchecked ones need not survive: a finite
     // JSON number beyond f32's range reads as infinity and is written back as `null` (found by
     // this target; `check` refuses it).

@@ -50,6 +50,41 @@ pub struct EvalArgs {
     /// estimate. See `cli::real_pair`.
     #[arg(long, value_name = "DIR_OR_NPZ", conflicts_with_all = ["dir", "seeds", "frames"])]
     pub real_pair: Option<PathBuf>,
+    /// Also score trajectories of this many frames starting every `--span-every` frames of each
+    /// simulated sequence (frame s to s + N; 0 = off): how a long log does along its length
+    /// (issue 21 scores 24-frame spans from frames 0, 25, 50, 75).
+    #[arg(long, default_value_t = 0, conflicts_with = "dir")]
+    pub span_frames: usize,
+    /// First frames of the spans of `--span-frames`: 0, this, twice this, ...
+    #[arg(long, default_value_t = 25, value_parser = clap::value_parser!(u64).range(1..))]
+    pub span_every: u64,
+}
+
+/// Long-term metrics of one span of frames (`--span-frames`).
+#[derive(Debug, Clone, Serialize)]
+pub struct SpanResult {
+    /// The span's first frame: its evaluated points are the ones scored.
+    pub start: usize,
+    /// Its last frame.
+    pub end: usize,
+    /// Evaluated points of frame `start`, from there to frame `end`.
+    pub long_term: TrajectoryMetrics,
+    /// The same, static points only.
+    pub long_term_static: TrajectoryMetrics,
+    /// The same, dynamic points only.
+    pub long_term_dynamic: TrajectoryMetrics,
+}
+
+/// The ground truth of one span (`--span-frames`).
+pub struct SpanTruth {
+    /// First frame.
+    pub start: usize,
+    /// Last frame.
+    pub end: usize,
+    /// True positions of frame `start`'s points at frame `end`.
+    pub end_positions: Vec<Point>,
+    /// Dynamic flags of frame `start`'s points.
+    pub dynamic: Vec<bool>,
 }
 
 /// Metrics of one method on one sequence.
@@ -80,6 +115,8 @@ pub struct MethodResult {
     pub best_iteration: Option<usize>,
     /// Every moving body on its own (empty when the ground truth has no object ids).
     pub moving_objects: Vec<ObjectResult>,
+    /// Per span of `--span-frames` (fitted methods only; empty otherwise).
+    pub spans: Vec<SpanResult>,
 }
 
 /// Metrics of one moving body of the ground truth. Motions are taken relative to the static
@@ -132,6 +169,8 @@ pub struct Labelled {
     /// Sensor-to-world poses (row-major 4 x 4), when known; fits use them unless
     /// `{"use_poses": false}` is passed in the parameters.
     pub poses: Option<Vec<[f64; 16]>>,
+    /// Spans scored besides frame 0 to T-1 (`--span-frames`; simulated sequences only).
+    pub spans: Vec<SpanTruth>,
 }
 
 impl Labelled {
@@ -154,7 +193,23 @@ impl Labelled {
                 .map(|o| (o.id, object_label(o.kind, o.behaviour)))
                 .collect(),
             poses: Some(sim.ego_poses.clone()),
+            spans: Vec::new(),
         })
+    }
+
+    /// Adds the truth of spans of `frames` frames starting at 0, `every`, 2 `every`, ... as far
+    /// as the sequence reaches.
+    pub fn with_spans(mut self, sim: &SimSequence, frames: usize, every: usize) -> anyhow::Result<Self> {
+        let t = sim.frames.len();
+        for start in (0..t).step_by(every.max(1)).take_while(|s| s + frames < t) {
+            self.spans.push(SpanTruth {
+                start,
+                end: start + frames,
+                end_positions: sim.positions_at(start, start + frames)?,
+                dynamic: sim.is_dynamic(start)?,
+            });
+        }
+        Ok(self)
     }
 
     /// Reads a directory written by `mbnt simulate` (frames/, timestamps.txt, ground_truth.npz).
@@ -240,6 +295,7 @@ impl Labelled {
             },
             object_ids,
             poses,
+            spans: Vec::new(),
         })
     }
 }
@@ -298,6 +354,9 @@ struct Prediction {
     fit_seconds: f64,
     iterations: usize,
     best_iteration: Option<usize>,
+    /// Per span of the sequence (`Labelled::spans`): frame start's points at frame end; empty for
+    /// baselines.
+    spans: Vec<Vec<Point>>,
 }
 
 /// The points every metric is computed on, per frame: not ground (by the ground truth) and
@@ -355,6 +414,30 @@ fn score(
         iterations: pred.iterations,
         best_iteration: pred.best_iteration,
         moving_objects: score_objects(seq, evaluated, pred, still),
+        spans: if pred.spans.len() == seq.spans.len() {
+            seq.spans
+                .iter()
+                .zip(&pred.spans)
+                .map(|(span, predicted)| {
+                    let select = |want_dynamic: Option<bool>| -> Vec<bool> {
+                        (0..span.end_positions.len())
+                            .map(|i| evaluated[span.start][i] && want_dynamic.is_none_or(|d| span.dynamic[i] == d))
+                            .collect()
+                    };
+                    let metrics =
+                        |want_dynamic| trajectory_metrics(predicted, &span.end_positions, Some(&select(want_dynamic)));
+                    SpanResult {
+                        start: span.start,
+                        end: span.end,
+                        long_term: metrics(None),
+                        long_term_static: metrics(Some(false)),
+                        long_term_dynamic: metrics(Some(true)),
+                    }
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
     }
 }
 
@@ -537,6 +620,11 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
         let flows = model.scene_flow(&sequence.frames);
         let ts = &sim.timestamps_s;
         let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
+        let spans = sim
+            .spans
+            .iter()
+            .map(|span| model.positions(&sim.frames[span.start], ts[span.start], &[ts[span.end]]))
+            .collect::<Result<_, _>>()?;
         let report = model.report();
         Ok(Prediction {
             flows,
@@ -544,6 +632,7 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
             fit_seconds: report.fit_seconds,
             iterations: report.iterations,
             best_iteration: report.best_iteration,
+            spans,
         })
     };
     let network_alone = if params.rigid_tracks || params.moving_bodies {
@@ -577,7 +666,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if args.dir.is_empty() {
         for &seed in &args.seeds {
             let sim = simulate(&SimParams { seed, frames: args.frames, ..SimParams::default() })?;
-            sequences.push(Labelled::from_sim(format!("seed {seed}"), &sim)?);
+            let labelled = Labelled::from_sim(format!("seed {seed}"), &sim)?;
+            sequences.push(if args.span_frames > 0 {
+                labelled.with_spans(&sim, args.span_frames, args.span_every as usize)?
+            } else {
+                labelled
+            });
         }
     }
     let mut results = Vec::new();
@@ -665,6 +759,21 @@ fn print_table(results: &[MethodResult]) {
             }
         );
     }
+    for r in results.iter().filter(|r| !r.spans.is_empty()) {
+        println!("\nspans, {} on {} (frame start's points at frame end)", r.method, r.sequence);
+        println!("{:>5} {:>5} | {:>7} {:>6} {:>6} {:>6}", "start", "end", "LT-EPE", "Acc.5", "St.5", "Dyn.5");
+        for span in &r.spans {
+            println!(
+                "{:>5} {:>5} | {:>7.3} {:>6.2} {:>6.2} {:>6.2}",
+                span.start,
+                span.end,
+                span.long_term.epe_m,
+                100.0 * span.long_term.acc_0_5,
+                100.0 * span.long_term_static.acc_0_5,
+                100.0 * span.long_term_dynamic.acc_0_5
+            );
+        }
+    }
     for r in results.iter().filter(|r| !BASELINES.contains(&r.method.as_str()) && !r.moving_objects.is_empty()) {
         println!(
             "\nmoving bodies, {} on {} (captured: share of the true motion relative to the still world)",
@@ -741,6 +850,30 @@ mod tests {
                 assert!(!mask[i] || (!seq.is_ground[k][i] && range_m <= params.max_range_m), "point {i} of frame {k}");
             }
         }
+    }
+
+    #[test]
+    fn spans_score_each_start_frame_against_its_own_truth() {
+        let sim = simulate(&SimParams { seed: 5, frames: 10, ..SimParams::default() }).unwrap();
+        let seq = Labelled::from_sim("seed 5".into(), &sim).unwrap().with_spans(&sim, 4, 3).unwrap();
+        // Spans 0 -> 4 and 3 -> 7; 6 -> 10 would run past the last frame (9).
+        let bounds: Vec<(usize, usize)> = seq.spans.iter().map(|s| (s.start, s.end)).collect();
+        assert_eq!(bounds, vec![(0, 4), (3, 7)]);
+        let evaluated = evaluated_points(&seq, &FitParams::default().check(Method::Mbnt).unwrap()).unwrap();
+        let exact = Prediction { spans: seq.spans.iter().map(|s| s.end_positions.clone()).collect(), ..truth_of(&seq) };
+        let result = score("truth", &seq, &evaluated, &exact, None);
+        assert_eq!(result.spans.len(), 2);
+        for span in &result.spans {
+            assert!(span.long_term.points > 1000, "{span:?}");
+            assert!(span.long_term.epe_m < 1e-6 && span.long_term.acc_0_5 == 1.0, "{span:?}");
+        }
+        // Points left where they were seen score as far off as the span's true motion.
+        let still =
+            Prediction { spans: seq.spans.iter().map(|s| sim.frames[s.start].clone()).collect(), ..truth_of(&seq) };
+        let held = score("held", &seq, &evaluated, &still, None);
+        assert!(held.spans.iter().all(|s| s.long_term.epe_m > 0.5), "{:?}", held.spans);
+        // A baseline without span predictions has no span rows.
+        assert!(score("zero", &seq, &evaluated, &zero_motion(&seq), None).spans.is_empty());
     }
 
     fn truth_of(seq: &Labelled) -> Prediction {

@@ -10,9 +10,11 @@ pub mod ntp;
 pub mod prepare;
 mod rigidity;
 pub mod tracks;
+pub mod windows;
 
 pub use crate::model::PhaseTimes;
 pub use crate::model::params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
+pub use windows::WindowProgress;
 
 use std::ops::ControlFlow;
 
@@ -74,6 +76,10 @@ pub struct Progress {
     /// iteration, loss and best-validation fields then repeat the last iteration's, and the
     /// validation-only fields (`validation_loss`, `fewest_live_units`) are `None`.
     pub rigid_tracks: Option<TrackingProgress>,
+    /// Set when the sequence is fitted as windows (`window_frames`): the window the other
+    /// fields are about, and how many are done. `None` for a fit of one window.
+    #[serde(default)]
+    pub window: Option<WindowProgress>,
 }
 
 /// How far the search for rigid tracks has come.
@@ -109,10 +115,25 @@ pub enum FitError {
 
 /// Fits `method` to `sequence` with `params`, calling `on_progress` after every iteration.
 ///
+/// A sequence of more than `params.window_frames` frames is fitted as overlapping windows
+/// ([`windows`]), each a fit of its frames by [`fit_single`], and stitched into one model; a
+/// shorter one is one fit, as before windows existed.
+///
 /// Blocking and CPU-heavy (runs on the calling thread and the rayon pool): call it from a
 /// worker thread, never from an async executor. Returning `ControlFlow::Break` from the
 /// callback cancels the fit between iterations.
 pub fn fit_sequence(
+    sequence: &Sequence,
+    method: Method,
+    params: &ValidFitParams,
+    on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+) -> Result<FittedModel, FitError> {
+    windows::fit_sequence_resuming(sequence, method, params, &mut windows::NoFinishedWindows, on_progress)
+}
+
+/// One fit of every frame of `sequence` (a sequence of at most one window, or one window of a
+/// log): [`fit_sequence`] without windows.
+pub(crate) fn fit_single(
     sequence: &Sequence,
     method: Method,
     params: &ValidFitParams,
@@ -165,6 +186,7 @@ pub fn fit_sequence(
         validation_loss: None,
         fewest_live_units: None,
         rigid_tracks: None,
+        window: None,
     });
     // A validation happened once, at its iteration: not again on every tracking step.
     last.validation_loss = None;

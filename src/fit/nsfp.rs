@@ -193,6 +193,7 @@ pub fn fit_pairs(
                 validation_loss: None,
                 fewest_live_units: None,
                 rigid_tracks: None,
+                window: None,
             };
             if on_progress(&progress).is_break() {
                 return Err(FitError::Cancelled { iteration: done });

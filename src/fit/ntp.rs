@@ -437,6 +437,7 @@ pub fn fit_trajectory(
             validation_loss: validation.then_some(validation_terms),
             fewest_live_units: if validation { scratch.fewest_live_units } else { None },
             rigid_tracks: None,
+            window: None,
         };
         tracing::debug!(iteration, loss = progress.loss.total, "trajectory iteration");
         if on_progress(&progress).is_break() {

@@ -17,6 +17,7 @@ use std::time::Duration;
 use tokio::sync::watch;
 use uuid::Uuid;
 
+use crate::fit::windows::{FinishedWindows, fit_sequence_resuming};
 use crate::fit::{FitError, Method, Progress, Sequence, ValidFitParams, fit_sequence};
 use crate::model::FittedModel;
 use crate::store::{CancelOutcome, JobProgress, JobRecord, JobStatus, Store, StoreError, now_ms};
@@ -35,6 +36,21 @@ pub trait Fitter: Send + Sync + 'static {
         params: &ValidFitParams,
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError>;
+
+    /// [`Fitter::fit`] of a job that may have run before: a sequence fitted as windows takes
+    /// the windows an earlier run finished from `finished` and keeps there each one it
+    /// finishes. The default fits every window again.
+    fn fit_resuming(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        finished: &mut dyn FinishedWindows,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        let _ = finished;
+        self.fit(sequence, method, params, on_progress)
+    }
 }
 
 /// [`Fitter`] that calls [`fit_sequence`] on the calling thread (and its rayon pool).
@@ -50,6 +66,17 @@ impl Fitter for CoreFitter {
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError> {
         fit_sequence(sequence, method, params, on_progress)
+    }
+
+    fn fit_resuming(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        finished: &mut dyn FinishedWindows,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        fit_sequence_resuming(sequence, method, params, finished, on_progress)
     }
 }
 

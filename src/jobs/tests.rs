@@ -34,6 +34,7 @@ impl Fitter for SlowFitter {
                 validation_loss: None,
                 fewest_live_units: None,
                 rigid_tracks: None,
+                window: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });
@@ -260,4 +261,127 @@ fn a_pool_runs_every_submitted_job_and_stops_cleanly() {
         let job = f.queue.store().get_job(id).unwrap().unwrap();
         assert_eq!(job.status, JobStatus::Succeeded, "{:?}", job.error);
     }
+}
+
+/// A store holding simulated log `seed` of `frames` frames, with timestamps and poses; and the
+/// log.
+fn log_fixture(seed: u64, frames: usize) -> (Fixture, crate::sim::SimSequence) {
+    let sim = crate::fit::windows::tests::small_log(seed, frames);
+    let dir = std::env::temp_dir().join(format!("mbnt-jobs-{}", Uuid::new_v4()));
+    let store = SqliteStore::open(&dir).unwrap();
+    let mut sink = store.begin_sequence().unwrap();
+    for frame in &sim.frames {
+        sink.put_frame(frame).unwrap();
+    }
+    let meta =
+        SequenceMeta { name: None, timestamps_s: Some(sim.timestamps_s.clone()), poses: Some(sim.ego_poses.clone()) };
+    let sequence = sink.commit(meta).unwrap().id;
+    (Fixture { dir, queue: JobQueue::new(Arc::new(store)), sequence }, sim)
+}
+
+/// The real fit, stopped (as a shutdown stops it) once it reaches window `stop_at` in its first
+/// run; records which windows each run fitted (reported an iteration 1: a window taken from
+/// the store reports its last iteration only).
+struct InterruptedOnce {
+    stop_at: usize,
+    fitted: std::sync::Mutex<Vec<Vec<usize>>>,
+}
+
+impl Fitter for InterruptedOnce {
+    fn fit(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        CoreFitter.fit(sequence, method, params, on_progress)
+    }
+
+    fn fit_resuming(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        finished: &mut dyn crate::fit::windows::FinishedWindows,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        let run = {
+            let mut fitted = self.fitted.lock().unwrap();
+            fitted.push(Vec::new());
+            fitted.len() - 1
+        };
+        CoreFitter.fit_resuming(sequence, method, params, finished, &mut |p| {
+            let window = p.window.expect("a windowed fit").window;
+            if p.iteration == 1 {
+                self.fitted.lock().unwrap()[run].push(window);
+            }
+            if run == 0 && window == self.stop_at { ControlFlow::Break(()) } else { on_progress(p) }
+        })
+    }
+}
+
+#[test]
+fn a_restarted_job_keeps_its_finished_windows() {
+    let (f, _) = log_fixture(5, 12);
+    let fitter = Arc::new(InterruptedOnce { stop_at: 2, fitted: std::sync::Mutex::new(Vec::new()) });
+    let shutdown = Arc::new(AtomicBool::new(false));
+    let w = Worker::new(f.queue.clone(), fitter.clone(), 1, shutdown).unwrap();
+    // 12 frames in windows of 6 overlapping by at least 2: windows from frames 0, 3 and 6.
+    let params = crate::fit::windows::tests::quick_params(6, 2);
+    let job = JobQueue::new_job(f.sequence, Method::Mbnt, params);
+    f.queue.submit(&job).unwrap();
+    // The first run stops in window 2 as a shutdown would: the job goes back to the queue with
+    // windows 0 and 1 kept.
+    let first = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(first.status, JobStatus::Queued, "{:?}", first.error);
+    let store = f.queue.store();
+    for key in ["0-6", "3-6"] {
+        assert!(store.read_window_model(job.id, key).unwrap().is_some(), "window {key} kept");
+    }
+    assert!(store.read_window_model(job.id, "6-6").unwrap().is_none(), "the stopped window is not kept");
+    // The second run fits window 2 only, and the job succeeds with a model of the whole log.
+    let second = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(second.status, JobStatus::Succeeded, "{:?}", second.error);
+    assert_eq!(*fitter.fitted.lock().unwrap(), vec![vec![0, 1, 2], vec![2]]);
+    let model = FittedModel::from_bytes(&store.read_model(job.id).unwrap()).unwrap();
+    assert_eq!(model.windows().iter().map(|(s, _)| *s).collect::<Vec<_>>(), vec![0, 3, 6]);
+    // A finished job keeps no windows.
+    assert!(store.read_window_model(job.id, "0-6").unwrap().is_none());
+}
+
+/// Issue 21's case, at a scale a test affords: a 100-frame log with poses, one default MBNT job
+/// (iterations and network cut down, 25-frame windows). The job succeeds with one model of the
+/// whole log, its progress has counted the windows, and every frame's points answer at every
+/// frame time, finite; labels exist for every frame.
+#[test]
+fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
+    let (f, sim) = log_fixture(21, 100);
+    let (w, _) = worker(&f, CoreFitter);
+    // The default windows.
+    use crate::model::params::{DEFAULT_WINDOW_FRAMES, DEFAULT_WINDOW_OVERLAP_FRAMES};
+    let params = crate::fit::windows::tests::quick_params(DEFAULT_WINDOW_FRAMES, DEFAULT_WINDOW_OVERLAP_FRAMES);
+    let job = JobQueue::new_job(f.sequence, Method::Mbnt, params);
+    f.queue.submit(&job).unwrap();
+    let done = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(done.status, JobStatus::Succeeded, "{:?}", done.error);
+    let window = done.progress.window.expect("the progress of a windowed fit names its window");
+    assert_eq!((window.window, window.windows), (4, 5), "100 frames: 5 windows of 25");
+    let model = FittedModel::from_bytes(&f.queue.store().read_model(job.id).unwrap()).unwrap();
+    assert_eq!(model.time_axis().frames(), 100);
+    assert_eq!(model.windows().len(), 5);
+    let times = &sim.timestamps_s;
+    for (k, frame) in sim.frames.iter().enumerate() {
+        let some: Vec<[f32; 3]> = frame.iter().step_by(200).copied().collect();
+        let answers = model.positions(&some, times[k], times).unwrap();
+        assert_eq!(answers.len(), some.len() * 100);
+        assert!(answers.iter().flatten().all(|c| c.is_finite()), "frame {k}");
+    }
+    let flows = model.scene_flow(&sim.frames);
+    let ids = model.object_ids(&sim.frames);
+    assert_eq!((flows.len(), ids.len()), (99, 100));
+    assert!((0..100).all(|k| ids[k].len() == sim.frames[k].len()));
+    assert!(flows.iter().flatten().flatten().all(|c| c.is_finite()));
+    // The objects (GET /v1/jobs/{id}/objects) each cover the whole log.
+    assert!(model.bodies().iter().all(|b| b.fits(100)));
 }

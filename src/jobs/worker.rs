@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 
 use super::{Fitter, JobQueue};
+use crate::fit::windows::FinishedWindows;
 use crate::fit::{FitError, Progress, Sequence};
+use crate::model::FittedModel;
 use crate::store::{JobOutcome, JobProgress, JobRecord, StoreError};
 
 /// How often a running job's progress is written to the store.
@@ -84,28 +86,48 @@ impl Worker {
             }
         };
         let (method, params) = (job.method, job.params.clone());
+        let mut finished = StoredWindows { store: &*store, job: job.id };
         let started = Instant::now();
         let mut last_persist = started;
         let mut last_publish = started;
+        // The window being fitted (0 without windows) and when its first iteration was reported.
+        let mut window_clock = (0usize, started);
         let mut store_error = None;
         let mut on_progress = |p: &Progress| -> ControlFlow<()> {
-            let elapsed_s = started.elapsed().as_secs_f64();
+            // A windowed fit's rate is the current window's (its clock starts at its first
+            // iteration); the iterations left are the window's and every later window's plan.
+            let window = p.window.map_or(0, |w| w.window);
+            if window != window_clock.0 {
+                window_clock = (window, Instant::now());
+            }
+            let elapsed_s = window_clock.1.elapsed().as_secs_f64();
             let rate = if elapsed_s > 0.0 { p.iteration as f64 / elapsed_s } else { 0.0 };
             self.queue.stats.record(job.id, rate);
-            let remaining = p.iterations.saturating_sub(p.iteration) as f64;
+            let window_fraction =
+                if p.iterations > 0 { (p.iteration as f64 / p.iterations as f64).min(1.0) } else { 0.0 };
+            let mut remaining = p.iterations.saturating_sub(p.iteration) as f64;
+            let mut fraction = window_fraction;
+            if let Some(w) = p.window {
+                remaining += (w.windows.saturating_sub(w.window + 1) * p.iterations) as f64;
+                fraction = ((w.windows_done as f64 + window_fraction) / w.windows.max(1) as f64).min(1.0);
+            }
+            let eta_s = (rate > 0.0 && p.rigid_tracks.is_none()).then(|| remaining / rate);
             job.progress = JobProgress {
-                fraction: if p.iterations > 0 { (p.iteration as f64 / p.iterations as f64).min(1.0) } else { 0.0 },
+                fraction,
                 iteration: p.iteration,
                 iterations: p.iterations,
                 loss: Some(p.loss),
-                eta_s: (rate > 0.0 && p.rigid_tracks.is_none()).then(|| remaining / rate),
+                eta_s,
                 rigid_tracks: p.rigid_tracks,
+                window: p.window,
             };
             let now = Instant::now();
             // The last iteration is stored at once; the rigid-track steps after it (which repeat its
             // iteration count) only every PERSIST_EVERY.
             let last_iteration = p.iteration >= p.iterations && p.rigid_tracks.is_none();
-            if now - last_persist >= PERSIST_EVERY || last_iteration {
+            // A window's first iteration is stored at once too, so the windows done show.
+            let new_window = p.window.is_some_and(|w| w.window > 0) && p.iteration == 1;
+            if now - last_persist >= PERSIST_EVERY || last_iteration || new_window {
                 last_persist = now;
                 match store.update_progress(job.id, &job.progress) {
                     Ok(true) => cancel.store(true, Ordering::Relaxed),
@@ -125,8 +147,9 @@ impl Worker {
             }
         };
         let fitter = &*self.fitter;
+
         let result = std::panic::catch_unwind(AssertUnwindSafe(|| {
-            self.pool.install(|| fitter.fit(&sequence, method, &params, &mut on_progress))
+            self.pool.install(|| fitter.fit_resuming(&sequence, method, &params, &mut finished, &mut on_progress))
         }));
         if let Some(e) = store_error {
             tracing::warn!(error = %e, "progress could not be stored during the fit");
@@ -167,6 +190,48 @@ impl Worker {
             }
         };
         store.finish_job(job.id, outcome)
+    }
+}
+
+/// The finished windows of one job, kept in the store (`windows/{job}/` of the data directory)
+/// until the job finishes, so that a job run again after a shutdown or a crash skips them. A
+/// kept window that cannot be read or written is fitted again: keeping them saves time only.
+struct StoredWindows<'a> {
+    store: &'a dyn crate::store::Store,
+    job: uuid::Uuid,
+}
+
+impl StoredWindows<'_> {
+    fn key(first_frame: usize, frames: usize) -> String {
+        format!("{first_frame}-{frames}")
+    }
+}
+
+impl FinishedWindows for StoredWindows<'_> {
+    fn take(&mut self, first_frame: usize, frames: usize) -> Option<FittedModel> {
+        let bytes = match self.store.read_window_model(self.job, &Self::key(first_frame, frames)) {
+            Ok(bytes) => bytes?,
+            Err(e) => {
+                tracing::warn!(error = %e, first_frame, "could not read a kept window; fitting it again");
+                return None;
+            }
+        };
+        match FittedModel::from_bytes(&bytes) {
+            Ok(model) if model.time_axis().frames() == frames => Some(model),
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!(error = %e, first_frame, "a kept window does not load; fitting it again");
+                None
+            }
+        }
+    }
+
+    fn keep(&mut self, first_frame: usize, frames: usize, model: &FittedModel) {
+        // A window with a non-finite number is not kept; the whole model's check fails the job.
+        let Ok(bytes) = model.to_bytes() else { return };
+        if let Err(e) = self.store.put_window_model(self.job, &Self::key(first_frame, frames), &bytes) {
+            tracing::warn!(error = %e, first_frame, "could not keep a finished window");
+        }
     }
 }
 

@@ -111,6 +111,13 @@ impl FittedModel {
                     check_network(mlp, || format!("the backward flow of frames {} -> {k}", k + 1))?;
                 }
             }
+            Motion::Windows(windows) => {
+                for (w, window) in windows.iter().enumerate() {
+                    window.model.check_finite().map_err(|e| NonFiniteModel {
+                        part: format!("window {w} (from frame {}): {}", window.start, e.part),
+                    })?;
+                }
+            }
         }
         for (k, &t) in self.time_axis.timestamps_s().unwrap_or_default().iter().enumerate() {
             finite_all([t], || format!("the timestamp of frame {k}"))?;

@@ -1,10 +1,17 @@
 //! The model file: magic and version, a JSON header, then each network's own versioned binary
 //! encoding behind a length prefix.
+//!
+//! Version 1 (`MBNTMDL1`) holds one fit; version 2 (`MBNTMDL2`) a log stitched from windows: its
+//! header names each window's first frame and object ids, and each window's own model file
+//! (version 1) follows behind a length prefix in place of a network. A model of one fit is
+//! still written as version 1, so that a server of before the windows reads it; both versions
+//! load.
 
 use serde::{Deserialize, Serialize};
 
 use super::networks::Motion;
 use super::params::Method;
+use super::windows::{Window, WindowHeader, check_windows};
 use super::{FitReport, FittedModel, MovingBody, NonFiniteModel, RigidTrack, TimeAxis};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
@@ -22,28 +29,35 @@ impl FittedModel {
 
     /// [`FittedModel::to_bytes`] without the check.
     pub(super) fn encode(&self) -> Vec<u8> {
-        let (kind, networks): (&str, Vec<&Mlp<f32>>) = match &self.motion {
-            Motion::Trajectory(mlp) => ("trajectory", vec![mlp]),
-            Motion::PairFlows { forward, backward } => ("pair_flows", forward.iter().chain(backward).collect()),
+        let (kind, parts, windows): (&str, Vec<Vec<u8>>, Vec<WindowHeader>) = match &self.motion {
+            Motion::Trajectory(mlp) => ("trajectory", vec![mlp.to_bytes()], Vec::new()),
+            Motion::PairFlows { forward, backward } => {
+                ("pair_flows", forward.iter().chain(backward).map(Mlp::to_bytes).collect(), Vec::new())
+            }
+            Motion::Windows(windows) => (
+                WINDOWS_KIND,
+                windows.iter().map(|w| w.model.encode()).collect(),
+                windows.iter().map(|w| WindowHeader { start: w.start, object_ids: w.object_ids.clone() }).collect(),
+            ),
         };
         let header = Header {
             method: self.method,
             time_axis: self.time_axis.clone(),
             report: self.report.clone(),
             kind: kind.to_string(),
-            networks: networks.len(),
+            networks: parts.len(),
             frame_poses: self.frame_poses.clone(),
             tracks: self.tracks.clone(),
             bodies: self.bodies.clone(),
             still_world: self.still_world,
             free_points: self.free_points.clone(),
+            windows,
         };
         let header = serde_json::to_vec(&header).expect("a header always serialises");
-        let mut out = MODEL_MAGIC.to_vec();
+        let mut out = if kind == WINDOWS_KIND { WINDOWS_MAGIC.to_vec() } else { MODEL_MAGIC.to_vec() };
         out.extend((header.len() as u64).to_le_bytes());
         out.extend(header);
-        for net in networks {
-            let bytes = net.to_bytes();
+        for bytes in parts {
             out.extend((bytes.len() as u64).to_le_bytes());
             out.extend(bytes);
         }
@@ -53,7 +67,11 @@ impl FittedModel {
     /// Reads a model written by [`FittedModel::to_bytes`]; a model holding a non-finite
     /// number (possible in the networks' binary weights) is refused as corrupt.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
-        let mut rest = bytes.strip_prefix(MODEL_MAGIC).ok_or("not an mbnt model file (bad magic or version)")?;
+        let (mut rest, stitched) = match (bytes.strip_prefix(MODEL_MAGIC), bytes.strip_prefix(WINDOWS_MAGIC)) {
+            (Some(rest), _) => (rest, false),
+            (_, Some(rest)) => (rest, true),
+            _ => return Err("not an mbnt model file (bad magic or version)".into()),
+        };
         let mut take = |what: &str| -> Result<&[u8], String> {
             if rest.len() < 8 {
                 return Err(format!("model file truncated before {what}"));
@@ -66,8 +84,28 @@ impl FittedModel {
             rest = tail;
             Ok(body)
         };
-        let header: Header =
+        let mut header: Header =
             serde_json::from_slice(take("the header")?).map_err(|e| format!("corrupt model header: {e}"))?;
+        if stitched != (header.kind == WINDOWS_KIND) {
+            return Err(format!("model kind {:?} in a file of the other version", header.kind));
+        }
+        if stitched {
+            let mut windows = Vec::with_capacity(header.windows.len().min(1024));
+            if header.windows.len() != header.networks {
+                return Err("model header: one entry per window expected".into());
+            }
+            for (w, entry) in std::mem::take(&mut header.windows).into_iter().enumerate() {
+                let bytes = take("a window")?;
+                // A window is one fit (version 1): refused before reading, so that a crafted file
+                // cannot nest windows until the stack overflows.
+                if !bytes.starts_with(MODEL_MAGIC) {
+                    return Err(format!("window {w} is not the model of one fit"));
+                }
+                let model = Self::from_bytes(bytes).map_err(|e| format!("window {w}: {e}"))?;
+                windows.push((entry, model));
+            }
+            return Self::from_windows(header, windows);
+        }
         let mut networks = Vec::with_capacity(header.networks.min(1024));
         for i in 0..header.networks {
             let body = take("a network")?;
@@ -137,6 +175,40 @@ impl FittedModel {
         model.check_finite().map_err(|e| format!("corrupt model: {e}"))?;
         Ok(model)
     }
+
+    /// A stitched model from its header and its windows' models, checked as
+    /// [`FittedModel::stitched`] builds them.
+    fn from_windows(header: Header, windows: Vec<(WindowHeader, FittedModel)>) -> Result<Self, String> {
+        let frames = header.time_axis.frames();
+        if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
+            return Err("model header: one pose per frame expected".into());
+        }
+        if header.bodies.iter().any(|b| !b.fits(frames)) {
+            return Err("model header: a moving body does not cover the sequence's frames".into());
+        }
+        let windows: Vec<Window> = windows
+            .into_iter()
+            .map(|(entry, model)| Window { start: entry.start, model, object_ids: entry.object_ids })
+            .collect();
+        check_windows(&header.time_axis, header.frame_poses.is_some(), &windows)?;
+        let known: Vec<u32> = header.bodies.iter().map(|b| b.id).collect();
+        if windows.iter().flat_map(|w| &w.object_ids).any(|id| !known.contains(id)) {
+            return Err("model header: a window's body is no object of the log".into());
+        }
+        let model = Self {
+            method: header.method,
+            time_axis: header.time_axis,
+            report: header.report,
+            motion: Motion::Windows(windows),
+            frame_poses: header.frame_poses,
+            tracks: Vec::new(),
+            bodies: header.bodies,
+            still_world: header.still_world,
+            free_points: Vec::new(),
+        };
+        model.check_finite().map_err(|e| format!("corrupt model: {e}"))?;
+        Ok(model)
+    }
 }
 
 /// The serialised description of a model, ahead of its networks.
@@ -162,10 +234,19 @@ struct Header {
     /// See [`FittedModel::free_points`]; absent (empty) in earlier files.
     #[serde(default)]
     free_points: Vec<Vec<(Point, bool)>>,
+    /// A stitched model's windows (version 2 files only), in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    windows: Vec<WindowHeader>,
 }
 
-/// File magic and format version of serialised models.
+/// File magic and format version of serialised models of one fit.
 const MODEL_MAGIC: &[u8] = b"MBNTMDL1";
+
+/// File magic and format version of stitched models (a log fitted as windows).
+const WINDOWS_MAGIC: &[u8] = b"MBNTMDL2";
+
+/// The header's `kind` of a stitched model.
+const WINDOWS_KIND: &str = "windows";
 
 #[cfg(test)]
 mod tests {

@@ -12,7 +12,8 @@
 //!   `check`: the finiteness check a model passes before it is saved ([`NonFiniteModel`]);
 //! - `objects`: [`MovingBody`] and [`RigidTrack`]; `report`: [`FitReport`] and its parts;
 //! - [`params`]: the hyper-parameters a model is fitted with (its report records them);
-//! - [`encoding`]: the networks' input encoding.
+//! - [`encoding`]: the networks' input encoding;
+//! - `windows`: a log fitted as overlapping windows, stitched into one model.
 //!
 //! The model owns every type a model file holds. `fit` builds models and imports from here; this
 //! module imports nothing from `fit`, so the two do not depend on each other in a cycle.
@@ -26,6 +27,7 @@ pub mod params;
 mod poses;
 mod report;
 mod time;
+mod windows;
 
 pub use check::NonFiniteModel;
 pub use objects::{MovingBody, RigidTrack};
@@ -186,6 +188,14 @@ impl FittedModel {
                 Motion::PairFlows { forward, backward } => {
                     euler_positions(forward, backward, chunk, u_obs, u_times, out_chunk)
                 }
+                // A stitched model has no network of its own: `positions` asks its windows
+                // before the network is reached, and the fit's free-point test runs on the
+                // windows' own models. Nothing moves is the answer of no network.
+                Motion::Windows(_) => {
+                    for (p, row) in chunk.iter().zip(out_chunk.chunks_mut(u_times.len())) {
+                        row.fill(*p);
+                    }
+                }
             }
         }
     }
@@ -211,7 +221,28 @@ impl FittedModel {
     /// The same model answering from the network alone (for comparisons): no tracks, no bodies,
     /// no still world.
     pub fn without_tracks(&self) -> Self {
-        Self { tracks: Vec::new(), bodies: Vec::new(), still_world: false, free_points: Vec::new(), ..self.clone() }
+        let motion = match &self.motion {
+            // A stitched model: each window's network alone.
+            Motion::Windows(windows) => Motion::Windows(
+                windows
+                    .iter()
+                    .map(|w| windows::Window {
+                        start: w.start,
+                        model: w.model.without_tracks(),
+                        object_ids: Vec::new(),
+                    })
+                    .collect(),
+            ),
+            motion => motion.clone(),
+        };
+        Self {
+            motion,
+            tracks: Vec::new(),
+            bodies: Vec::new(),
+            still_world: false,
+            free_points: Vec::new(),
+            ..self.clone()
+        }
     }
 
     /// Rigid tracks of moving clusters the model holds.
@@ -228,11 +259,28 @@ impl FittedModel {
         if let Some(index) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
             return Err(QueryError::NonFinitePoint { index });
         }
+        if let Motion::Windows(windows) = &self.motion {
+            return windows::positions(self, windows, points, t_obs, times);
+        }
+        Ok(self.positions_carried(points, t_obs, times, None)?.0)
+    }
+
+    /// [`FittedModel::positions`] of a model of one fit (the points checked finite), where
+    /// `carried[i]`, when given and set, is the body point i is known to lie on (a stitched
+    /// model's previous window put it there): it follows that body whether or not it lies near the
+    /// body's points of `t_obs`. Also returns the body each point followed.
+    pub(super) fn positions_carried(
+        &self,
+        points: &[Point],
+        t_obs: f64,
+        times: &[f64],
+        carried: Option<&[Option<usize>]>,
+    ) -> Result<(Vec<Point>, Vec<Option<usize>>), QueryError> {
         let u_obs = self.time_axis.to_frame_index(t_obs)?;
         let u_times = times.iter().map(|&t| self.time_axis.to_frame_index(t)).collect::<Result<Vec<_>, _>>()?;
         let mut out = vec![[0f32; 3]; points.len() * times.len()];
         if times.is_empty() {
-            return Ok(out);
+            return Ok((out, vec![None; points.len()]));
         }
         // With poses, queries go into the fit's frame and answers come back into the sensor
         // frame of each queried time.
@@ -256,7 +304,14 @@ impl FittedModel {
             self.network_positions_into(points, u_obs, &u_times, &mut out);
         }
         self.apply_tracks(points, u_obs, &u_times, &mut out);
-        self.apply_bodies(points, u_obs, &u_times, &mut out);
+        let mut owners =
+            if self.bodies.is_empty() { vec![None; points.len()] } else { self.body_members(points, u_obs) };
+        if let Some(carried) = carried {
+            for (owner, known) in owners.iter_mut().zip(carried) {
+                *owner = known.filter(|&n| n < self.bodies.len()).or(*owner);
+            }
+        }
+        self.apply_bodies(points, &owners, u_obs, &u_times, &mut out);
         if let Some(poses) = &self.frame_poses {
             let to_sensor: Vec<Rigid> = u_times.iter().map(|&u| pose_at(poses, u).inverse()).collect();
             for row in out.chunks_mut(times.len()) {
@@ -265,7 +320,7 @@ impl FittedModel {
                 }
             }
         }
-        Ok(out)
+        Ok((out, owners))
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a tracked cluster
@@ -326,12 +381,9 @@ impl FittedModel {
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a moving body at
-    /// `u_obs` with the body's motion from `u_obs` to each queried time.
-    fn apply_bodies(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
-        if self.bodies.is_empty() {
-            return;
-        }
-        let owners = self.body_members(points, u_obs);
+    /// `u_obs` (`owners`: the body of each point, if any) with the body's motion from `u_obs` to
+    /// each queried time.
+    fn apply_bodies(&self, points: &[Point], owners: &[Option<usize>], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
         for (n, body) in self.bodies.iter().enumerate() {
             let back = pose_at(&body.poses, u_obs).inverse();
             let motions: Vec<Rigid> = u_times.iter().map(|&u| pose_at(&body.poses, u).compose(&back)).collect();
@@ -371,22 +423,24 @@ impl FittedModel {
     /// Per frame k, the moving body (its [`MovingBody::id`]) each of `frames[k]`'s points (sensor
     /// coordinates of sweep k) lies on, -1 for none: the `object_id` of the labels.
     pub fn object_ids(&self, frames: &[Vec<Point>]) -> Vec<Vec<i32>> {
-        frames
-            .iter()
-            .enumerate()
-            .map(|(k, points)| {
-                if self.bodies.is_empty() || k >= self.time_axis.frames() {
-                    return vec![-1; points.len()];
-                }
-                let in_fit: Vec<Point> = match &self.frame_poses {
-                    Some(poses) => points.iter().map(|p| poses[k].apply(p)).collect(),
-                    None => points.clone(),
-                };
-                self.body_members(&in_fit, k as f64)
-                    .into_iter()
-                    .map(|owner| owner.map_or(-1, |n| self.bodies[n].id as i32))
-                    .collect()
-            })
+        frames.iter().enumerate().map(|(k, points)| self.frame_object_ids(k, points)).collect()
+    }
+
+    /// [`FittedModel::object_ids`] of frame `k`'s `points` (sensor coordinates of sweep k).
+    fn frame_object_ids(&self, k: usize, points: &[Point]) -> Vec<i32> {
+        if self.bodies.is_empty() || k >= self.time_axis.frames() {
+            return vec![-1; points.len()];
+        }
+        if let Motion::Windows(windows) = &self.motion {
+            return windows::frame_object_ids(windows, k, points);
+        }
+        let in_fit: Vec<Point> = match &self.frame_poses {
+            Some(poses) => points.iter().map(|p| poses[k].apply(p)).collect(),
+            None => points.to_vec(),
+        };
+        self.body_members(&in_fit, k as f64)
+            .into_iter()
+            .map(|owner| owner.map_or(-1, |n| self.bodies[n].id as i32))
             .collect()
     }
 

@@ -19,6 +19,8 @@ pub(super) enum Motion {
         /// g_k, k = 0..T-2.
         backward: Vec<Mlp<f32>>,
     },
+    /// A log fitted as overlapping windows, each with its own model (`model::windows`).
+    Windows(Vec<super::windows::Window>),
 }
 
 /// Trajectory position at fractional frame index `u` from one point's velocity row: the

@@ -17,7 +17,9 @@ pub struct MovingBody {
     /// Per frame: whether the body was seen (clusters associated) or its pose predicted.
     pub observed: Vec<bool>,
     /// Per frame: the body's points (fit coordinates), thinned to one per
-    /// `fit::bodies::BodyParams::member_voxel_m` cube; empty where it was not seen.
+    /// `fit::bodies::BodyParams::member_voxel_m` cube; empty where it was not seen, and in every
+    /// frame of the objects of a model stitched from windows (the windows' own bodies hold the
+    /// members that queries and labels use).
     pub members: Vec<Vec<Point>>,
     /// Per frame: the number of the frame's fitted points on the body (before thinning).
     pub member_counts: Vec<usize>,

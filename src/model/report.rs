@@ -62,6 +62,20 @@ pub struct FrameReport {
     pub clustered_points: usize,
 }
 
+impl std::ops::AddAssign for PhaseTimes {
+    /// Adds another fit's times, phase by phase (a log's windows).
+    fn add_assign(&mut self, other: Self) {
+        self.mlp_forward_s += other.mlp_forward_s;
+        self.mlp_backward_s += other.mlp_backward_s;
+        self.nearest_s += other.nearest_s;
+        self.cycle_s += other.cycle_s;
+        self.multibody_s += other.multibody_s;
+        self.optimiser_s += other.optimiser_s;
+        self.mlp_gflop += other.mlp_gflop;
+        self.total_s += other.total_s;
+    }
+}
+
 /// Wall time spent per phase of a fit (s), summed over iterations: what `mbnt bench` prints.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct PhaseTimes {

@@ -7,6 +7,8 @@
 //! - `sequences/{id}/frame_{k:05}.f32`: frame k of a sequence ([`write_frame`] format).
 //! - `staging/{uuid}/`: a sequence being uploaded; renamed into `sequences/` when complete.
 //! - `models/{job_id}.mbnt`: a fitted model ([`crate::model::FittedModel::to_bytes`]).
+//! - `windows/{job_id}/{key}.mbnt`: the finished windows of a job still queued or running (a
+//!   long log fitted as windows), so that the job run again after a restart skips them.
 //! - `tmp/`: raw upload parts while they stream in.
 
 use std::fs::{self, File};
@@ -28,7 +30,7 @@ pub struct DataDir {
 impl DataDir {
     /// Opens (creating when absent) the data directory and its sub-directories.
     pub fn create(root: &Path) -> io::Result<Self> {
-        for sub in ["sequences", "staging", "models", "tmp"] {
+        for sub in ["sequences", "staging", "models", "tmp", "windows"] {
             fs::create_dir_all(root.join(sub))?;
         }
         Ok(Self { root: root.to_path_buf() })
@@ -67,6 +69,16 @@ impl DataDir {
     /// Parent of the model files.
     pub fn models_dir(&self) -> PathBuf {
         self.root.join("models")
+    }
+
+    /// Parent of the finished windows of unfinished jobs, one directory per job.
+    pub fn windows_dir(&self) -> PathBuf {
+        self.root.join("windows")
+    }
+
+    /// The model file of window `key` of job `id`.
+    pub fn window_model_path(&self, id: &str, key: &str) -> PathBuf {
+        self.windows_dir().join(id).join(format!("{key}.mbnt"))
     }
 
     /// The model file of job `id`.

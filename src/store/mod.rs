@@ -13,7 +13,7 @@ pub mod sqlite;
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
-use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams};
+use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams, WindowProgress};
 use crate::geometry::Point;
 
 pub use sqlite::SqliteStore;
@@ -120,6 +120,11 @@ pub struct JobProgress {
     /// written before the field existed).
     #[serde(default)]
     pub rigid_tracks: Option<TrackingProgress>,
+    /// Set while a sequence longer than `window_frames` is fitted window by window: the
+    /// window the iteration fields are about and the windows done; `fraction` and `eta_s` are
+    /// then the whole log's (absent in records written before the field existed).
+    #[serde(default)]
+    pub window: Option<WindowProgress>,
 }
 
 /// A job: one fit of one method to one sequence.
@@ -271,6 +276,12 @@ pub trait Store: Send + Sync + 'static {
     fn requeue_running_jobs(&self) -> Result<usize, StoreError>;
     /// The serialised model of a succeeded job.
     fn read_model(&self, job_id: Uuid) -> Result<Vec<u8>, StoreError>;
+    /// Keeps the model of a finished window (`key`: letters, digits and `-`) of a running job
+    /// fitted as windows, so that the job, run again after a restart, need not fit it again.
+    /// Removed when the job finishes.
+    fn put_window_model(&self, job_id: Uuid, key: &str, model: &[u8]) -> Result<(), StoreError>;
+    /// A window model kept by [`Store::put_window_model`] for this job, if any.
+    fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError>;
     /// Number of jobs in each status (statuses without jobs are absent).
     fn count_jobs_by_status(&self) -> Result<Vec<(JobStatus, u64)>, StoreError>;
     /// Checks that the storage answers (for /healthz).

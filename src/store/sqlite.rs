@@ -145,6 +145,20 @@ impl SqliteStore {
                 fs::remove_dir_all(entry.path())?;
             }
         }
+        // Kept windows of jobs that will not run again (finished or deleted while the process
+        // was down).
+        let unfinished: Vec<String> = self
+            .inner
+            .conn()
+            .prepare("SELECT id FROM jobs WHERE status IN ('queued', 'running')")?
+            .query_map([], |r| r.get(0))?
+            .collect::<Result<_, _>>()?;
+        for entry in fs::read_dir(dir.windows_dir())? {
+            let entry = entry?;
+            if !unfinished.contains(&entry.file_name().to_string_lossy().into_owned()) {
+                fs::remove_dir_all(entry.path())?;
+            }
+        }
         for entry in fs::read_dir(dir.models_dir())? {
             let entry = entry?;
             let name = entry.file_name().to_string_lossy().into_owned();
@@ -155,6 +169,14 @@ impl SqliteStore {
         }
         Ok(())
     }
+}
+
+/// A window key names a file: letters, digits and `-` only, so it cannot leave its directory.
+fn check_window_key(key: &str) -> Result<(), StoreError> {
+    if key.is_empty() || !key.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
+        return Err(StoreError::Io(std::io::Error::other(format!("invalid window key {key:?}"))));
+    }
+    Ok(())
 }
 
 /// Takes the exclusive lock of the data directory, without waiting.
@@ -535,6 +557,14 @@ impl Store for SqliteStore {
             JobOutcome::Failed { error } => (JobStatus::Failed, Some(error.clone())),
             JobOutcome::Cancelled => (JobStatus::Cancelled, None),
         };
+        // The job will not run again: its kept windows are of no more use. If removing them
+        // fails, the next start's sweep does it.
+        let windows = self.inner.dir.windows_dir().join(&key);
+        if let Err(e) = fs::remove_dir_all(&windows)
+            && e.kind() != std::io::ErrorKind::NotFound
+        {
+            tracing::warn!(path = %windows.display(), error = %e, "could not remove a finished job's windows");
+        }
         let conn = self.inner.conn();
         let mut job = require_job(&conn, id)?;
         if status == JobStatus::Succeeded {
@@ -600,6 +630,23 @@ impl Store for SqliteStore {
         let n = tx.execute("UPDATE jobs SET status = 'queued' WHERE status = 'running'", [])?;
         tx.commit()?;
         Ok(n)
+    }
+
+    fn put_window_model(&self, job_id: Uuid, key: &str, model: &[u8]) -> Result<(), StoreError> {
+        check_window_key(key)?;
+        let path = self.inner.dir.window_model_path(&job_id.to_string(), key);
+        fs::create_dir_all(path.parent().expect("a window model has a directory"))?;
+        files::write_atomic(&path, |w| std::io::Write::write_all(w, model))?;
+        Ok(())
+    }
+
+    fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError> {
+        check_window_key(key)?;
+        match fs::read(self.inner.dir.window_model_path(&job_id.to_string(), key)) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(e.into()),
+        }
     }
 
     fn read_model(&self, job_id: Uuid) -> Result<Vec<u8>, StoreError> {
@@ -805,10 +852,11 @@ mod tests {
             fs::write(d.model_path("no-such-job"), b"x").unwrap();
             fs::write(d.tmp_dir().join("part"), b"x").unwrap();
             fs::create_dir_all(d.staging_dir().join("half")).unwrap();
+            fs::create_dir_all(d.windows_dir().join("no-such-job")).unwrap();
         }
         let store = SqliteStore::open(&dir).unwrap();
         let d = store.data_dir();
-        for sub in [d.sequences_dir(), d.models_dir(), d.tmp_dir(), d.staging_dir()] {
+        for sub in [d.sequences_dir(), d.models_dir(), d.tmp_dir(), d.staging_dir(), d.windows_dir()] {
             assert_eq!(fs::read_dir(&sub).unwrap().count(), 0, "{}", sub.display());
         }
         fs::remove_dir_all(&dir).unwrap();

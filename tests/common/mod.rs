@@ -39,6 +39,7 @@ impl Fitter for SlowFitter {
                 validation_loss: None,
                 fewest_live_units: None,
                 rigid_tracks: None,
+                window: None,
             };
             if on_progress(&p).is_break() {
                 return Err(FitError::Cancelled { iteration });

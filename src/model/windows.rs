@@ -1,0 +1,527 @@
+//! A model stitched from overlapping windows: how a log longer than one window answers
+//! (`fit::windows` fits the windows; issue 21).
+//!
+//! # Design
+//! Each window is an ordinary model of its frames ([`FittedModel`], its own time axis, poses,
+//! network, bodies and free points), so a window answers exactly as a fit of those frames
+//! alone would. The stitched model owns its windows and adds only:
+//! - **ownership of time**: neighbouring windows `w` and `w + 1` hand over at the middle frame
+//!   of their overlap (`handoff`), away from both windows' least constrained end frames;
+//!   window `w` answers the times in `[handoff(w - 1), handoff(w))`;
+//! - **chaining**: a point observed at `t_obs` is moved by the window owning `t_obs` to the
+//!   hand-over frame towards the queried time, continues from there in the next window, and so
+//!   on until the window owning the queried time answers. Queries stay in sensor coordinates
+//!   between windows (each window's `positions` takes and gives them), so the chaining needs no
+//!   knowledge of a window's fit coordinates, with or without poses. A trajectory is continuous
+//!   at a hand-over: at the hand-over time the next window is asked for its own time, the
+//!   identity. A point that followed a moving body carries the body's object into the next
+//!   window and follows that window's part of the object: whether a point lies on a body is
+//!   decided once, at the time it was observed, as in a model of one fit, and not again at each
+//!   hand-over (the sweep there may show the body from another side, away from the point);
+//! - **object identity**: a moving body of one window and one of the next are one object when
+//!   their member points lie on each other in the overlap's frames ([`link_bodies`]); the
+//!   stitched model lists each object once over the whole log with the labels' ids.
+//!
+//! Memory: a window model holds what its queries need (network, body members, free points);
+//! the frames a window was fitted on are not kept.
+
+use serde::{Deserialize, Serialize};
+
+use super::networks::Motion;
+use super::poses::pose_at;
+use super::{FitReport, FittedModel, MovingBody, QueryError, TRACK_MEMBER_RADIUS_M, TimeAxis};
+use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
+use crate::geometry::rigid::Rigid;
+use crate::model::params::Method;
+
+/// One window of a stitched model.
+#[derive(Debug, Clone)]
+pub(super) struct Window {
+    /// The window's first frame in the log.
+    pub(super) start: usize,
+    /// The model of the window's frames alone (time axis: its slice of the log's timestamps,
+    /// or frame indices 0..W-1 without timestamps).
+    pub(super) model: FittedModel,
+    /// The log-wide object id of each of `model`'s bodies, in their order.
+    pub(super) object_ids: Vec<u32>,
+}
+
+/// What the model file keeps of a window besides its model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub(super) struct WindowHeader {
+    /// See [`Window::start`].
+    pub(super) start: usize,
+    /// See [`Window::object_ids`].
+    pub(super) object_ids: Vec<u32>,
+}
+
+/// Two bodies of neighbouring windows are one object when at least this share of their member
+/// points in the overlap's frames (both bodies' together) lie within [`TRACK_MEMBER_RADIUS_M`]
+/// of the other's members of the same frame. Both windows see the same sweeps there, so one
+/// object's members are mostly the same points; a neighbouring car's are metres away.
+const LINK_MIN_SHARE: f64 = 0.5;
+
+impl Window {
+    /// The window's frames.
+    fn frames(&self) -> usize {
+        self.model.time_axis.frames()
+    }
+
+    /// One past the window's last frame in the log.
+    fn end(&self) -> usize {
+        self.start + self.frames()
+    }
+
+    /// `t` (the log's axis) on the window's own axis: the same seconds with timestamps, the
+    /// frame index less the window's start without.
+    fn local_time(&self, log_axis: &TimeAxis, t: f64) -> f64 {
+        if log_axis.timestamps_s().is_some() { t } else { t - self.start as f64 }
+    }
+}
+
+/// The hand-over frame (in the log) between each window and the next: the middle of their
+/// overlap.
+fn handoffs(windows: &[Window]) -> Vec<usize> {
+    windows.windows(2).map(|pair| pair[1].start + (pair[0].end() - pair[1].start) / 2).collect()
+}
+
+/// The window answering fractional frame `u` of the log: the number of hand-overs at or before it.
+fn owner(handoffs: &[usize], u: f64) -> usize {
+    handoffs.partition_point(|&h| h as f64 <= u)
+}
+
+/// The checks a stitched model's windows pass (when built and when read from a file): they
+/// cover the log's frames in order, each overlapping the next by at least one frame, each a
+/// single model on its slice of the log's time axis.
+pub(super) fn check_windows(axis: &TimeAxis, with_poses: bool, windows: &[Window]) -> Result<(), String> {
+    let Some(first) = windows.first() else { return Err("a stitched model without windows".into()) };
+    if first.start != 0 {
+        return Err("the first window does not start at frame 0".into());
+    }
+    let last = windows.last().expect("not empty");
+    if last.end() != axis.frames() {
+        return Err(format!("the windows end at frame {}, the log has {} frames", last.end(), axis.frames()));
+    }
+    for (w, window) in windows.iter().enumerate() {
+        if matches!(window.model.motion, Motion::Windows(_)) {
+            return Err(format!("window {w} is itself stitched"));
+        }
+        if window.frames() < 2 {
+            return Err(format!("window {w} has fewer than 2 frames"));
+        }
+        if let Some(next) = windows.get(w + 1)
+            && (next.start <= window.start || next.start >= window.end())
+        {
+            return Err(format!("windows {w} and {} do not overlap in order", w + 1));
+        }
+        let expected = axis.timestamps_s().map(|ts| ts[window.start..window.end()].to_vec());
+        if window.model.time_axis.timestamps_s().map(<[f64]>::to_vec) != expected {
+            return Err(format!("window {w}'s times are not its frames' times in the log"));
+        }
+        if window.model.frame_poses.is_some() != with_poses {
+            return Err(format!("window {w} and the log disagree on whether the fit used poses"));
+        }
+        if window.object_ids.len() != window.model.bodies.len() {
+            return Err(format!("window {w}: one object id per moving body expected"));
+        }
+    }
+    Ok(())
+}
+
+impl FittedModel {
+    /// The model of a log fitted as `windows` (each `(first frame, model of its frames)`, in
+    /// order, covering the log's frames with overlaps): moving bodies linked across the
+    /// overlaps into one object each, and a report for the whole log.
+    ///
+    /// `frame_poses` are the log's (sensor coordinates -> frame 0's), when the windows were
+    /// fitted with poses; `report` carries what the windows do not know (the parameters, the
+    /// log's estimated poses, the total wall time); the rest is summed over the windows.
+    pub(crate) fn stitched(
+        method: Method,
+        time_axis: TimeAxis,
+        frame_poses: Option<Vec<Rigid>>,
+        mut report: FitReport,
+        windows: Vec<(usize, FittedModel)>,
+    ) -> Result<Self, String> {
+        let mut windows: Vec<Window> = windows
+            .into_iter()
+            .map(|(start, model)| Window { start, object_ids: vec![0; model.bodies.len()], model })
+            .collect();
+        check_windows(&time_axis, frame_poses.is_some(), &windows)?;
+        // Window-to-log transforms of fit coordinates: a window's fit coordinates are its first
+        // frame's sensor coordinates (with poses), the log's are frame 0's.
+        let to_log: Vec<Rigid> = match &frame_poses {
+            Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
+            None => vec![Rigid::identity(); windows.len()],
+        };
+        let objects = link_bodies(&windows, &to_log);
+        for (window, ids) in windows.iter_mut().zip(&objects.ids) {
+            window.object_ids.clone_from(ids);
+        }
+        let handoffs = handoffs(&windows);
+        let bodies = log_bodies(&windows, &to_log, &handoffs, objects.count, time_axis.frames());
+        report.frames = (0..time_axis.frames())
+            .map(|k| {
+                let w = &windows[owner(&handoffs, k as f64)];
+                w.model.report.frames.get(k - w.start).copied().unwrap_or_default()
+            })
+            .collect();
+        for w in &windows {
+            let r = &w.model.report;
+            report.iterations += r.iterations;
+            report.rigid_tracks += r.rigid_tracks;
+            report.rigid_tracks_seconds += r.rigid_tracks_seconds;
+            report.free_points += r.free_points;
+            report.phase_times += r.phase_times;
+        }
+        report.moving_bodies = bodies.len();
+        let still_world = windows.iter().any(|w| w.model.still_world);
+        Ok(Self {
+            method,
+            time_axis,
+            report,
+            motion: Motion::Windows(windows),
+            frame_poses,
+            tracks: Vec::new(),
+            bodies,
+            still_world,
+            free_points: Vec::new(),
+        })
+    }
+
+    /// The windows of a stitched model (first frame in the log, and the window's own model);
+    /// empty for a model of one fit.
+    pub fn windows(&self) -> Vec<(usize, &FittedModel)> {
+        match &self.motion {
+            Motion::Windows(windows) => windows.iter().map(|w| (w.start, &w.model)).collect(),
+            _ => Vec::new(),
+        }
+    }
+}
+
+/// [`FittedModel::positions`] of a stitched model (the caller has checked the points finite).
+pub(super) fn positions(
+    model: &FittedModel,
+    windows: &[Window],
+    points: &[Point],
+    t_obs: f64,
+    times: &[f64],
+) -> Result<Vec<Point>, QueryError> {
+    let axis = &model.time_axis;
+    let u_obs = axis.to_frame_index(t_obs)?;
+    let u_times = times.iter().map(|&t| axis.to_frame_index(t)).collect::<Result<Vec<_>, _>>()?;
+    let mut out = vec![[0f32; 3]; points.len() * times.len()];
+    if times.is_empty() {
+        return Ok(out);
+    }
+    let handoffs = handoffs(windows);
+    let home = owner(&handoffs, u_obs);
+    let owners: Vec<usize> = u_times.iter().map(|&u| owner(&handoffs, u)).collect();
+    let lo = owners.iter().copied().min().expect("times not empty").min(home);
+    let hi = owners.iter().copied().max().expect("times not empty").max(home);
+    // Per window from lo to hi: the points (sensor coordinates), the log time at which that
+    // window takes them over, and the body of that window each one arrives on.
+    let mut entry: Vec<Option<Entry>> = vec![None; hi - lo + 1];
+    entry[home - lo] = Some(Entry { points: points.to_vec(), t: t_obs, carried: None });
+    let hand_over = |from: usize, to: usize, current: &Entry, handoff: usize| -> Result<Entry, QueryError> {
+        let window = &windows[from];
+        let t_handoff = axis.frame_time(handoff);
+        let (moved, owners) = window.model.positions_carried(
+            &current.points,
+            window.local_time(axis, current.t),
+            &[window.local_time(axis, t_handoff)],
+            current.carried.as_deref(),
+        )?;
+        // The next window's part of each point's object, if it has one.
+        let next = &windows[to];
+        let carried = owners
+            .iter()
+            .map(|owner| {
+                let object = window.object_ids[(*owner)?];
+                next.object_ids.iter().position(|&o| o == object)
+            })
+            .collect();
+        Ok(Entry { points: moved, t: t_handoff, carried: Some(carried) })
+    };
+    for w in home + 1..=hi {
+        let from = entry[w - 1 - lo].as_ref().expect("filled in order");
+        entry[w - lo] = Some(hand_over(w - 1, w, from, handoffs[w - 1])?);
+    }
+    for w in (lo..home).rev() {
+        let from = entry[w + 1 - lo].as_ref().expect("filled in order");
+        entry[w - lo] = Some(hand_over(w + 1, w, from, handoffs[w])?);
+    }
+    let n_times = times.len();
+    for w in lo..=hi {
+        let asked: Vec<usize> = (0..n_times).filter(|&j| owners[j] == w).collect();
+        if asked.is_empty() {
+            continue;
+        }
+        let window = &windows[w];
+        let at = entry[w - lo].as_ref().expect("every window from lo to hi is entered");
+        let local: Vec<f64> = asked.iter().map(|&j| window.local_time(axis, times[j])).collect();
+        let (answers, _) =
+            window.model.positions_carried(&at.points, window.local_time(axis, at.t), &local, at.carried.as_deref())?;
+        for i in 0..points.len() {
+            for (n, &j) in asked.iter().enumerate() {
+                out[i * n_times + j] = answers[i * asked.len() + n];
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Where a query enters a window of a stitched model.
+#[derive(Debug, Clone)]
+struct Entry {
+    /// The query points (sensor coordinates of time `t`).
+    points: Vec<Point>,
+    /// The log's time at which the window takes them over.
+    t: f64,
+    /// Per point, the body of the window it arrives on (the previous window's body of the same
+    /// object); `None` for the window the points were observed in.
+    carried: Option<Vec<Option<usize>>>,
+}
+
+/// [`FittedModel::frame_object_ids`] of a stitched model: the window owning frame `k` labels its
+/// points, with the log-wide ids.
+pub(super) fn frame_object_ids(windows: &[Window], k: usize, points: &[Point]) -> Vec<i32> {
+    let window = &windows[owner(&handoffs(windows), k as f64)];
+    let ids = window.model.frame_object_ids(k - window.start, points);
+    ids.into_iter()
+        .map(|id| {
+            window.model.bodies.iter().position(|b| b.id as i32 == id).map_or(-1, |n| window.object_ids[n] as i32)
+        })
+        .collect()
+}
+
+/// Log-wide object ids of every window's bodies, and how many objects there are.
+struct Objects {
+    /// Per window, per body (in the window's order): its object id.
+    ids: Vec<Vec<u32>>,
+    /// Objects in the log.
+    count: usize,
+}
+
+/// Links the bodies of neighbouring windows (see [`LINK_MIN_SHARE`]) and numbers the objects
+/// in order of first appearance. Each body links to at most one of the next window's, the
+/// pairs sharing the most points first.
+fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
+    let mut ids: Vec<Vec<u32>> = Vec::with_capacity(windows.len());
+    let mut count = 0u32;
+    for (w, window) in windows.iter().enumerate() {
+        let mut mine: Vec<Option<u32>> = vec![None; window.model.bodies.len()];
+        if w > 0 {
+            let previous = &windows[w - 1];
+            let overlap = window.start..previous.end();
+            // Members of each body in each overlap frame, in the log's fit coordinates.
+            let members = |win: &Window, to: &Rigid, body: &MovingBody, k: usize| -> Vec<Point> {
+                body.members[k - win.start].iter().map(|p| to.apply(p)).collect()
+            };
+            let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+            for (a, body_a) in previous.model.bodies.iter().enumerate() {
+                for (b, body_b) in window.model.bodies.iter().enumerate() {
+                    let (mut near, mut total) = (0usize, 0usize);
+                    for k in overlap.clone() {
+                        let pa = members(previous, &to_log[w - 1], body_a, k);
+                        let pb = members(window, &to_log[w], body_b, k);
+                        near += near_count(&pa, &pb) + near_count(&pb, &pa);
+                        total += pa.len() + pb.len();
+                    }
+                    let share = if total == 0 { 0.0 } else { near as f64 / total as f64 };
+                    if share >= LINK_MIN_SHARE {
+                        pairs.push((share, a, b));
+                    }
+                }
+            }
+            pairs.sort_by(|x, y| y.0.total_cmp(&x.0));
+            let mut taken = vec![false; previous.model.bodies.len()];
+            for (_, a, b) in pairs {
+                if !taken[a] && mine[b].is_none() {
+                    taken[a] = true;
+                    mine[b] = Some(ids[w - 1][a]);
+                }
+            }
+        }
+        ids.push(
+            mine.into_iter()
+                .map(|id| {
+                    id.unwrap_or_else(|| {
+                        count += 1;
+                        count - 1
+                    })
+                })
+                .collect(),
+        );
+    }
+    Objects { ids, count: count as usize }
+}
+
+/// How many of `points` lie within [`TRACK_MEMBER_RADIUS_M`] of one of `others`.
+fn near_count(points: &[Point], others: &[Point]) -> usize {
+    if points.is_empty() || others.is_empty() {
+        return 0;
+    }
+    let tree = KdTree::new(others);
+    let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
+    points.iter().filter(|p| tree.nearest(p).is_some_and(|h| h.dist2 <= max_d2)).count()
+}
+
+/// Each object over the whole log (fit coordinates of the log): at frame k, the pose, sighting
+/// and point count its part in the window owning k gives, else its part in the nearest window
+/// holding it (held at that window's end frame beyond it, as a body is held beyond its bounded
+/// extrapolation). Members are left empty: queries use the windows' bodies, which hold them.
+fn log_bodies(
+    windows: &[Window],
+    to_log: &[Rigid],
+    handoffs: &[usize],
+    objects: usize,
+    frames: usize,
+) -> Vec<MovingBody> {
+    (0..objects)
+        .map(|id| {
+            // The object's parts: (window, body index), in window order.
+            let parts: Vec<(usize, usize)> = windows
+                .iter()
+                .enumerate()
+                .flat_map(|(w, window)| {
+                    window.object_ids.iter().enumerate().filter(|&(_, &o)| o as usize == id).map(move |(b, _)| (w, b))
+                })
+                .collect();
+            let mut body = MovingBody {
+                id: id as u32,
+                poses: Vec::with_capacity(frames),
+                observed: Vec::with_capacity(frames),
+                members: vec![Vec::new(); frames],
+                member_counts: Vec::with_capacity(frames),
+                extent_min_m: [0.0; 3],
+                extent_max_m: [0.0; 3],
+            };
+            for k in 0..frames {
+                let own = owner(handoffs, k as f64);
+                // The part in the owning window, else the nearest window's (by window index,
+                // which orders windows by time).
+                let &(w, b) = parts.iter().min_by_key(|(w, _)| w.abs_diff(own)).expect("an object has a part");
+                let window = &windows[w];
+                let part = &window.model.bodies[b];
+                let local = k.clamp(window.start, window.end() - 1) - window.start;
+                let inside = (window.start..window.end()).contains(&k);
+                body.poses.push(to_log[w].compose(&pose_at(&part.poses, local as f64)));
+                body.observed.push(inside && part.observed[local]);
+                body.member_counts.push(if inside { part.member_counts[local] } else { 0 });
+            }
+            // The extent the window seeing the object most often measured.
+            let &(w, b) = parts
+                .iter()
+                .max_by_key(|&&(w, b)| windows[w].model.bodies[b].observed.iter().filter(|&&o| o).count())
+                .expect("an object has a part");
+            let part = &windows[w].model.bodies[b];
+            body.extent_min_m = part.extent_min_m;
+            body.extent_max_m = part.extent_max_m;
+            body
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::tests::scene_model;
+
+    #[test]
+    fn hand_overs_lie_in_the_middle_of_the_overlaps_and_own_every_time_once() {
+        let window = |start: usize| Window { start, model: scene_model(), object_ids: vec![0] };
+        // Three 4-frame windows over 9 frames (starts 0, 3, 5): overlaps {3} and {5, 6}.
+        let windows = [window(0), window(3), window(5)];
+        let h = handoffs(&windows);
+        assert_eq!(h, vec![3, 6]);
+        let owners: Vec<usize> = (0..9).map(|k| owner(&h, k as f64)).collect();
+        assert_eq!(owners, vec![0, 0, 0, 1, 1, 1, 2, 2, 2]);
+        assert_eq!(owner(&h, 2.999), 0);
+        assert!(check_windows(&TimeAxis::new(None, 9), true, &windows).is_ok());
+        // Gaps, a wrong end and a missing start are refused.
+        let gap = [window(0), window(4)];
+        assert!(check_windows(&TimeAxis::new(None, 8), true, &gap).unwrap_err().contains("overlap"));
+        assert!(check_windows(&TimeAxis::new(None, 10), true, &windows).unwrap_err().contains("end at frame 9"));
+        assert!(check_windows(&TimeAxis::new(None, 9), false, &windows).unwrap_err().contains("poses"));
+    }
+
+    #[test]
+    fn bodies_sharing_their_points_in_the_overlap_are_one_object() {
+        // scene_model(): a 4-frame window whose body drives 1 m per frame along x from x = 0.
+        // The next window starts at frame 2 of the first: in its own coordinates (identity
+        // poses, so the same as the log's) its body is the same car, 2 m on.
+        let first = scene_model();
+        let mut second = scene_model();
+        let car = &mut second.bodies[0];
+        let shift = Rigid { translation: [2.0, 0.0, 0.0], ..Rigid::identity() };
+        car.poses = car.poses.iter().map(|p| shift.compose(p)).collect();
+        car.members = car.members.iter().map(|m| m.iter().map(|p| shift.apply(p)).collect()).collect();
+        // A second body far away in the second window: a new object.
+        let mut other = car.clone();
+        other.id = 1;
+        other.members = other.members.iter().map(|m| m.iter().map(|p| [p[0], p[1] + 30.0, p[2]]).collect()).collect();
+        second.bodies.push(other);
+        let stitched = FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 6),
+            Some(vec![Rigid::identity(); 6]),
+            FitReport::default(),
+            vec![(0, first), (2, second)],
+        )
+        .unwrap();
+        let ids: Vec<u32> = stitched.bodies().iter().map(|b| b.id).collect();
+        assert_eq!(ids, vec![0, 1], "the car is one object, the far body another");
+        let car = &stitched.bodies()[0];
+        // The car's pose at every frame of the log: 1 m per frame along x throughout.
+        for (k, pose) in car.poses.iter().enumerate() {
+            assert!((pose.translation[0] - k as f64).abs() < 1e-9, "frame {k}: {pose:?}");
+        }
+        // Labels: frame 5 (owned by the second window) has the car at x = 5..6, the far body
+        // at y = 30.
+        let labels =
+            stitched.object_ids(&[vec![], vec![], vec![], vec![], vec![], vec![[5.2, 0.0, 0.0], [5.0, 30.0, 0.0]]]);
+        assert_eq!(labels[5], vec![0, 1]);
+        // A point on the car at frame 0 follows it to frame 5, through the hand-over at frame 3.
+        let at = stitched.positions(&[[0.2, 0.1, 0.0]], 0.0, &[2.5, 3.0, 5.0]).unwrap();
+        for (got, want) in at.iter().zip([[2.7, 0.1, 0.0], [3.2, 0.1, 0.0], [5.2, 0.1, 0.0]]) {
+            assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{at:?}");
+        }
+        // A point of the car seen only in frame 0 (its rear: the first window's frame-0 members
+        // hold it, no later sweep does) follows the car through the hand-over: it arrives 3 m from
+        // the second window's members of frame 3 but carries the car's object with it.
+        let mut seen_once = stitched.clone();
+        if let Motion::Windows(windows) = &mut seen_once.motion {
+            windows[0].model.bodies[0].members[0].push([0.0, 3.0, 0.0]);
+        }
+        let at = seen_once.positions(&[[0.1, 3.0, 0.0]], 0.0, &[3.0, 5.0]).unwrap();
+        for (got, want) in at.iter().zip([[3.1, 3.0, 0.0], [5.1, 3.0, 0.0]]) {
+            assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{at:?}");
+        }
+        // And back.
+        let back = stitched.positions(&[[5.2, 0.1, 0.0]], 5.0, &[0.0]).unwrap();
+        assert!(back[0].iter().zip(&[0.2, 0.1, 0.0]).all(|(g, w)| (g - w).abs() < 1e-4), "{back:?}");
+        // Through the file format (version 2, each window a version 1 file).
+        let bytes = stitched.to_bytes().unwrap();
+        assert!(bytes.starts_with(b"MBNTMDL2"));
+        let window_at = bytes.windows(8).skip(8).position(|w| w == b"MBNTMDL1").unwrap() + 8;
+        let mut nested = bytes.clone();
+        nested[window_at..window_at + 8].copy_from_slice(b"MBNTMDL2");
+        let e = FittedModel::from_bytes(&nested).unwrap_err();
+        assert!(e.contains("window 0 is not the model of one fit"), "{e}");
+        let loaded = FittedModel::from_bytes(&bytes).unwrap();
+        assert_eq!(loaded.bodies(), stitched.bodies());
+        assert_eq!(
+            loaded.positions(&[[0.2, 0.1, 0.0]], 0.0, &[5.0]).unwrap(),
+            stitched.positions(&[[0.2, 0.1, 0.0]], 0.0, &[5.0]).unwrap()
+        );
+        // A window holding a NaN is refused at save time, naming the window.
+        let mut poisoned = stitched.clone();
+        if let Motion::Windows(windows) = &mut poisoned.motion {
+            windows[1].model.bodies[0].poses[3].translation[0] = f64::NAN;
+        }
+        let e = poisoned.to_bytes().unwrap_err().to_string();
+        assert!(e.contains("window 1 (from frame 2): moving body 0, pose at frame 3"), "{e}");
+    }
+}
