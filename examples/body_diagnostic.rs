@@ -96,7 +96,7 @@ fn main() -> anyhow::Result<()> {
             }
             // At the end: the true travel (in frame T-1's sensor coordinates, from where the
             // still world would put the points) and the error along and across it.
-            let still = sim_still[end].clone();
+            let still = &sim_still[end];
             let (mut travel, mut along, mut across) = (0.0, 0.0, 0.0);
             for &i in members {
                 let (p, q, s0) = (predicted[i * checkpoints.len() + end], truth[end][i], still[i]);

@@ -479,7 +479,8 @@ fn track_body(
     // Points of the still world a body took in (a tree it drove past, a wall behind a
     // pedestrian) leave it: the still world explains them and the body's motion does not.
     for j in (0..t).filter(|&j| observed[j]) {
-        on_body[j].points.retain(|&i| !still_member(&frames[j][i as usize], j, &poses, trees));
+        let sweeps = still_test_sweeps(j, &poses, trees);
+        on_body[j].points.retain(|&i| !still_member(&frames[j][i as usize], &sweeps));
     }
     let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
     let members: Vec<Vec<Point>> =
@@ -527,26 +528,28 @@ const STILL_MOVED_OFF_M: f64 = 0.3;
 /// Sweeps on each side of a member's frame that [`still_member`] compares.
 const STILL_TEST_FRAMES: usize = 2;
 
-/// Whether point `p` of frame `j`, taken onto a body with per-frame `poses` (body -> fit), is a
-/// still point: see [`STILL_MATCH_M`] and [`STILL_MOVED_OFF_M`].
-fn still_member(p: &Point, j: usize, poses: &[Rigid], trees: &[&KdTree]) -> bool {
-    let t = poses.len();
-    let to_body = poses[j].inverse();
-    let in_body = to_body.apply(p);
-    let (mut moved_m, mut compared) = (0.0, 0usize);
-    for n in j.saturating_sub(STILL_TEST_FRAMES)..(j + STILL_TEST_FRAMES + 1).min(t) {
-        if n == j {
-            continue;
-        }
-        let still = trees[n].nearest(p).map_or(f32::INFINITY, |h| h.dist2.sqrt());
+/// The sweeps [`still_member`] compares a member of frame `j` with: each neighbouring frame's
+/// tree and the body's motion from frame `j` to it (`poses`: body -> fit, per frame).
+fn still_test_sweeps<'a>(j: usize, poses: &[Rigid], trees: &[&'a KdTree]) -> Vec<(&'a KdTree, Rigid)> {
+    let from_j = poses[j].inverse();
+    (j.saturating_sub(STILL_TEST_FRAMES)..(j + STILL_TEST_FRAMES + 1).min(poses.len()))
+        .filter(|&n| n != j)
+        .map(|n| (trees[n], poses[n].compose(&from_j)))
+        .collect()
+}
+
+/// Whether a body's member point `p` is a still point, against its frame's `sweeps`
+/// ([`still_test_sweeps`]): see [`STILL_MATCH_M`] and [`STILL_MOVED_OFF_M`].
+fn still_member(p: &Point, sweeps: &[(&KdTree, Rigid)]) -> bool {
+    let mut moved_m = 0.0;
+    for (tree, step) in sweeps {
+        let still = tree.nearest(p).map_or(f32::INFINITY, |h| h.dist2.sqrt());
         if still > STILL_MATCH_M {
             return false;
         }
-        let moved = poses[n].apply(&in_body);
-        moved_m += trees[n].nearest(&moved).map_or(1.0, |h| f64::from(h.dist2.sqrt()).min(1.0));
-        compared += 1;
+        moved_m += tree.nearest(&step.apply(p)).map_or(1.0, |h| f64::from(h.dist2.sqrt()).min(1.0));
     }
-    compared > 0 && moved_m / compared as f64 >= STILL_MOVED_OFF_M
+    !sweeps.is_empty() && moved_m / sweeps.len() as f64 >= STILL_MOVED_OFF_M
 }
 
 /// Rounds of looking again for a body in the frames its tracking lost.
@@ -814,7 +817,12 @@ impl StraightPath {
     /// Coordinate `axis` (0 = x, 1 = y) at `time` as the local fits of [`smooth_poses`] give it:
     /// value, first derivative and half the second derivative, in powers of (time' - time).
     fn taylor(&self, axis: usize, time: f64) -> Vec<f64> {
-        vec![self.at_mid[axis] + self.velocity[axis] * (time - self.mid_time), self.velocity[axis], 0.0]
+        vec![self.position(time)[axis], self.velocity[axis], 0.0]
+    }
+
+    /// Centre (x, y) at `time`.
+    fn position(&self, time: f64) -> [f64; 2] {
+        [0, 1].map(|axis| self.at_mid[axis] + self.velocity[axis] * (time - self.mid_time))
     }
 }
 
@@ -835,7 +843,7 @@ fn straight_path(pool: &[usize], times: &[f64], pos: &[[f64; 3]]) -> Option<Stra
     let squared: f64 = pool
         .iter()
         .map(|&j| {
-            let (x, y) = (path.taylor(0, times[j])[0], path.taylor(1, times[j])[0]);
+            let [x, y] = path.position(times[j]);
             (x - pos[j][0]).powi(2) + (y - pos[j][1]).powi(2)
         })
         .sum();
@@ -1358,11 +1366,12 @@ mod tests {
         let trees: Vec<KdTree> = frames.iter().map(|f| KdTree::new(f)).collect();
         let trees: Vec<&KdTree> = trees.iter().collect();
         let j = 3;
-        let post = frames[j].iter().take(post_points).filter(|p| still_member(p, j, &poses, &trees)).count();
+        let sweeps = still_test_sweeps(j, &poses, &trees);
+        let post = frames[j].iter().take(post_points).filter(|p| still_member(p, &sweeps)).count();
         assert!(post > 1900, "{post} of {post_points} post points judged still");
         // The box's points: its back and front faces move off themselves; its flanks and top
         // slide along themselves, lie on the neighbouring sweeps both ways, and stay.
-        let on_car = frames[j].iter().skip(post_points).filter(|p| still_member(p, j, &poses, &trees)).count();
+        let on_car = frames[j].iter().skip(post_points).filter(|p| still_member(p, &sweeps)).count();
         assert!(on_car < 60, "{on_car} of 3000 car points judged still");
     }
 }
