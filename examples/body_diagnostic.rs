@@ -10,10 +10,19 @@
 //! ```text
 //! cargo run --release --example body_diagnostic -- 100,101 [FRAMES] ['{"iterations": 1}']
 //! ```
+//!
+//! Under each object, the same errors for its points that a body holds. With
+//! `BODY_DIAG_PATH=1`, also the object's true path (centre of its frame-0 points, fit
+//! coordinates, every frame); with `BODY_DIAG_PROBE=N`, what N rounds of point-to-point ICP (30 when N
+//! is not a number) recover between two of its sweeps (its own points only, from standing
+//! still) against the true motion.
 
 use std::collections::BTreeMap;
 
 use mbnt::fit::{FitParams, Method, fit_sequence};
+use mbnt::geometry::Point;
+use mbnt::geometry::knn::KdTree;
+use mbnt::geometry::rigid::{Rigid, fit_rigid_icp};
 use mbnt::sim::{SimParams, simulate};
 
 fn main() -> anyhow::Result<()> {
@@ -116,6 +125,66 @@ fn main() -> anyhow::Result<()> {
                 print!("  body {}: {seen}", body.id);
             }
             println!();
+            if std::env::var("BODY_DIAG_PROBE").is_ok() {
+                // The object's own non-ground points of frame k, in fit coordinates.
+                let own = |k: usize| -> Vec<Point> {
+                    sim.frames[k]
+                        .iter()
+                        .zip(&sim.truth[k])
+                        .filter(|(_, t)| t.object_id == *id && !t.is_ground)
+                        .map(|(p, _)| to_first[k].apply(p))
+                        .collect()
+                };
+                let mean = |points: &[Point]| -> [f64; 3] {
+                    std::array::from_fn(|c| {
+                        points.iter().map(|p| f64::from(p[c])).sum::<f64>() / points.len().max(1) as f64
+                    })
+                };
+                for (a, b) in [(0usize, 1usize), (1, 2), (0, 2), (0, 4)] {
+                    let (from, to) = (own(b), own(a));
+                    let tree = KdTree::new(&to);
+                    let iterations: usize =
+                        std::env::var("BODY_DIAG_PROBE").ok().and_then(|s| s.parse().ok()).unwrap_or(30);
+                    let back = fit_rigid_icp(&from, &tree, &to, Rigid::identity(), iterations, 1.0);
+                    let centre = mean(&from);
+                    let moved_back = back.apply_f64(centre);
+                    // The true motion of the frame-0 points from frame a to frame b.
+                    let (at_a, at_b) = (sim.positions_at(0, a)?, sim.positions_at(0, b)?);
+                    let true_a: Vec<Point> = members.iter().map(|&i| to_first[a].apply(&at_a[i])).collect();
+                    let true_b: Vec<Point> = members.iter().map(|&i| to_first[b].apply(&at_b[i])).collect();
+                    let (ca, cb) = (mean(&true_a), mean(&true_b));
+                    println!(
+                        "    ICP {a} -> {b} ({} / {} pts): recovered ({:+.2}, {:+.2}) m, true ({:+.2}, {:+.2}) m",
+                        to.len(),
+                        from.len(),
+                        centre[0] - moved_back[0],
+                        centre[1] - moved_back[1],
+                        cb[0] - ca[0],
+                        cb[1] - ca[1]
+                    );
+                }
+            }
+            // The same errors for the points a body holds: how well the bodies move what they took.
+            let on: Vec<usize> = members.iter().copied().filter(|&i| owners[i] >= 0).collect();
+            if !on.is_empty() {
+                let errs: Vec<String> = (0..checkpoints.len())
+                    .map(|n| format!("{:>6.2}", on.iter().map(|&i| error(i, n)).sum::<f64>() / on.len() as f64))
+                    .collect();
+                println!("    {:<49} {}", format!("on a body: {} pts", on.len()), errs.join(" "));
+            }
+            if std::env::var("BODY_DIAG_PATH").is_ok() {
+                let mut line = String::new();
+                for j in 0..frames {
+                    let at = sim.positions_at(0, j)?;
+                    let c: Vec<f32> = (0..2)
+                        .map(|d| {
+                            members.iter().map(|&i| to_first[j].apply(&at[i])[d]).sum::<f32>() / members.len() as f32
+                        })
+                        .collect();
+                    line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
+                }
+                println!("    truth{line}");
+            }
         }
         // What each body holds over all frames, by the kind of the simulator's objects.
         let all_owners = model.object_ids(&sim.frames);
