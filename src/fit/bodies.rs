@@ -856,6 +856,38 @@ fn straight_path(pool: &[usize], times: &[f64], pos: &[[f64; 3]]) -> Option<Stra
     ((squared / pool.len() as f64).sqrt() <= STRAIGHT_PATH_RMS_M).then_some(path)
 }
 
+/// The observed centres of a body that drives straight lie this close (m, root mean square
+/// across the line) to one straight line...
+const STRAIGHT_ROAD_RMS_M: f64 = 0.15;
+/// ...spread this far along it (m, standard deviation): a few metres of road.
+const STRAIGHT_ROAD_MIN_SPREAD_M: f64 = 1.0;
+
+/// The unit direction (x, y, either sign) of the straight line through the centres `pos` of
+/// the frames `pool` when they keep to one (see [`STRAIGHT_ROAD_RMS_M`]), whatever the speed
+/// along it; `None` for a turning or barely moving body, or fewer than five frames. The line is
+/// the principal axis of the centres (total least squares).
+fn straight_road(pool: &[usize], pos: &[[f64; 3]]) -> Option<[f64; 2]> {
+    if pool.len() < 5 {
+        return None;
+    }
+    let n = pool.len() as f64;
+    let mean = [0, 1].map(|a| pool.iter().map(|&j| pos[j][a]).sum::<f64>() / n);
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for &j in pool {
+        let (dx, dy) = (pos[j][0] - mean[0], pos[j][1] - mean[1]);
+        sxx += dx * dx / n;
+        syy += dy * dy / n;
+        sxy += dx * dy / n;
+    }
+    let half_gap = ((sxx - syy) / 2.0).hypot(sxy);
+    let (along, across) = ((sxx + syy) / 2.0 + half_gap, ((sxx + syy) / 2.0 - half_gap).max(0.0));
+    if along.sqrt() < STRAIGHT_ROAD_MIN_SPREAD_M || across.sqrt() > STRAIGHT_ROAD_RMS_M {
+        return None;
+    }
+    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    Some([angle.cos(), angle.sin()])
+}
+
 /// `a - b` wrapped to (-pi, pi].
 fn angle_diff(a: f64, b: f64) -> f64 {
     let d = (a - b).rem_euclid(std::f64::consts::TAU);
@@ -946,6 +978,7 @@ fn smooth_poses(
     // from every observed frame instead of eight, so registration noise averages out and the
     // motion carried on past the observed span starts from a steadier velocity.
     let straight = straight_path(&pool, times, &pos).filter(|path| path.speed() * frame_gap <= MAX_LINE_STEP_M);
+    let road = straight_road(&pool, &pos);
     if let Some(path) = &straight {
         for (j, fit) in fits.iter_mut().enumerate() {
             if let Some(c) = fit {
@@ -988,6 +1021,16 @@ fn smooth_poses(
                 let speed = vx.hypot(vy);
                 let max_rate = speed / MIN_TURN_RADIUS_M;
                 let rate = ((vx * ay - vy * ax) / (speed * speed)).clamp(-max_rate, max_rate);
+                // Past the observed span, a body that drove straight while seen goes on straight
+                // along that line: the curvature and direction read off the last frames seen
+                // are mostly the drift of a sparse, receding view.
+                let (dir, speed, rate) = match road {
+                    Some(u) if dt != 0.0 => {
+                        let along = vx * u[0] + vy * u[1];
+                        (if along < 0.0 { (-u[1]).atan2(-u[0]) } else { u[1].atan2(u[0]) }, along.abs(), 0.0)
+                    }
+                    _ => (dir, speed, rate),
+                };
                 let turned = rate * dt;
                 let (dx, dy) = if turned.abs() < 1e-9 {
                     (speed * dt * dir.cos(), speed * dt * dir.sin())
@@ -1443,5 +1486,34 @@ mod tests {
         ));
         assert!(converged < 0.13, "converged {converged:.3} m off the true motion");
         assert!((registered - converged).abs() < 0.01, "{registered:.3} m off, converged {converged:.3} m");
+    }
+
+    #[test]
+    fn a_car_that_drove_straight_while_seen_goes_on_straight_and_a_turning_one_keeps_turning() {
+        // 12 m/s along x at 10 Hz, seen in frames 0-17. Its last registrations drift sideways by
+        // up to 0.12 m (a sparse, receding view): a quadratic through the last eight frames
+        // reads a turn into them and swings the prediction off the road.
+        let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+        let drift = [0.0, 0.0, 0.0, 0.0, 0.02, 0.05, 0.08, 0.12];
+        let truth: Vec<Rigid> = times.iter().map(|&t| planar(-5.0 + 12.0 * t, 3.0, 0.0)).collect();
+        let mut poses = truth.clone();
+        for (n, d) in drift.iter().enumerate() {
+            poses[10 + n].translation[1] += d;
+        }
+        let mut observed = vec![true; 25];
+        observed[18..].fill(false);
+        smooth_poses(&mut poses, &observed, &times, 3.0, [0.0; 3], 0.3);
+        let across = (poses[24].translation[1] - truth[24].translation[1]).abs();
+        let along = (poses[24].translation[0] - truth[24].translation[0]).abs();
+        assert!(across < 0.2 && along < 0.3, "frame 24: {across:.2} m across, {along:.2} m along");
+        // A car turning at 0.3 rad/s while seen keeps turning past the frames seen.
+        let (v, w) = (8.0, 0.3);
+        let arc = |t: f64| planar(v / w * (w * t).sin(), 10.0 + v / w * (1.0 - (w * t).cos()), w * t);
+        let truth: Vec<Rigid> = times.iter().map(|&t| arc(t)).collect();
+        let mut poses = truth.clone();
+        smooth_poses(&mut poses, &observed, &times, 3.0, [0.0; 3], 0.3);
+        let off = (poses[24].translation[0] - truth[24].translation[0])
+            .hypot(poses[24].translation[1] - truth[24].translation[1]);
+        assert!(off < 0.1, "the turning car ends {off:.2} m off");
     }
 }
