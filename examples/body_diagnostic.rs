@@ -174,12 +174,10 @@ fn main() -> anyhow::Result<()> {
             }
             if std::env::var("BODY_DIAG_PATH").is_ok() {
                 let mut line = String::new();
-                for j in 0..frames {
+                for (j, to_fit) in to_first.iter().enumerate() {
                     let at = sim.positions_at(0, j)?;
                     let c: Vec<f32> = (0..2)
-                        .map(|d| {
-                            members.iter().map(|&i| to_first[j].apply(&at[i])[d]).sum::<f32>() / members.len() as f32
-                        })
+                        .map(|d| members.iter().map(|&i| to_fit.apply(&at[i])[d]).sum::<f32>() / members.len() as f32)
                         .collect();
                     line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
                 }

@@ -1465,8 +1465,8 @@ mod tests {
         let length = travel[0].hypot(travel[1]);
         assert!(length > 3.0, "the car moved {length:.2} m");
         let mut guess = truth;
-        for i in 0..2 {
-            guess.translation[i] -= 0.5 * travel[i] / length;
+        for (shift, along) in guess.translation.iter_mut().zip(&travel).take(2) {
+            *shift -= 0.5 * along / length;
         }
         let tree = KdTree::new(&model);
         let params = BodyParams::default();
