@@ -32,6 +32,8 @@ fn main() -> anyhow::Result<()> {
     let frames: usize = args.get(2).map_or(Ok(25), |s| s.parse())?;
     let params: FitParams = serde_json::from_str(args.get(3).map_or(r#"{"iterations": 1}"#, String::as_str))?;
     let params = params.check(Method::Mbnt)?;
+    let probe_rounds: Option<usize> = std::env::var("BODY_DIAG_PROBE").ok().map(|s| s.parse().unwrap_or(30));
+    let show_path = std::env::var("BODY_DIAG_PATH").is_ok();
     for seed in seeds {
         let sim = simulate(&SimParams { seed, frames, ..SimParams::default() })?;
         let sequence = sim.to_fit_sequence();
@@ -59,6 +61,16 @@ fn main() -> anyhow::Result<()> {
                 sim.frames[0].iter().map(|p| back.apply(p)).collect()
             })
             .collect();
+        // Frame 0's points at every frame, exact, in fit coordinates (for the path and the probe).
+        let exact_fit: Vec<Vec<Point>> = if show_path || probe_rounds.is_some() {
+            to_first
+                .iter()
+                .enumerate()
+                .map(|(j, to_fit)| Ok(sim.positions_at(0, j)?.iter().map(|p| to_fit.apply(p)).collect()))
+                .collect::<anyhow::Result<_>>()?
+        } else {
+            Vec::new()
+        };
         let owners = model.object_ids(&sim.frames[..1])[0].clone();
         let error = |i: usize, n: usize| -> f64 {
             let (p, q) = (predicted[i * checkpoints.len() + n], truth[n][i]);
@@ -125,7 +137,7 @@ fn main() -> anyhow::Result<()> {
                 print!("  body {}: {seen}", body.id);
             }
             println!();
-            if std::env::var("BODY_DIAG_PROBE").is_ok() {
+            if let Some(rounds) = probe_rounds {
                 // The object's own non-ground points of frame k, in fit coordinates.
                 let own = |k: usize| -> Vec<Point> {
                     sim.frames[k]
@@ -143,15 +155,12 @@ fn main() -> anyhow::Result<()> {
                 for (a, b) in [(0usize, 1usize), (1, 2), (0, 2), (0, 4)] {
                     let (from, to) = (own(b), own(a));
                     let tree = KdTree::new(&to);
-                    let iterations: usize =
-                        std::env::var("BODY_DIAG_PROBE").ok().and_then(|s| s.parse().ok()).unwrap_or(30);
-                    let back = fit_rigid_icp(&from, &tree, &to, Rigid::identity(), iterations, 1.0);
+                    let back = fit_rigid_icp(&from, &tree, &to, Rigid::identity(), rounds, 1.0);
                     let centre = mean(&from);
                     let moved_back = back.apply_f64(centre);
                     // The true motion of the frame-0 points from frame a to frame b.
-                    let (at_a, at_b) = (sim.positions_at(0, a)?, sim.positions_at(0, b)?);
-                    let true_a: Vec<Point> = members.iter().map(|&i| to_first[a].apply(&at_a[i])).collect();
-                    let true_b: Vec<Point> = members.iter().map(|&i| to_first[b].apply(&at_b[i])).collect();
+                    let true_a: Vec<Point> = members.iter().map(|&i| exact_fit[a][i]).collect();
+                    let true_b: Vec<Point> = members.iter().map(|&i| exact_fit[b][i]).collect();
                     let (ca, cb) = (mean(&true_a), mean(&true_b));
                     println!(
                         "    ICP {a} -> {b} ({} / {} pts): recovered ({:+.2}, {:+.2}) m, true ({:+.2}, {:+.2}) m",
@@ -172,13 +181,11 @@ fn main() -> anyhow::Result<()> {
                     .collect();
                 println!("    {:<49} {}", format!("on a body: {} pts", on.len()), errs.join(" "));
             }
-            if std::env::var("BODY_DIAG_PATH").is_ok() {
+            if show_path {
                 let mut line = String::new();
-                for (j, to_fit) in to_first.iter().enumerate() {
-                    let at = sim.positions_at(0, j)?;
-                    let c: Vec<f32> = (0..2)
-                        .map(|d| members.iter().map(|&i| to_fit.apply(&at[i])[d]).sum::<f32>() / members.len() as f32)
-                        .collect();
+                for (j, at) in exact_fit.iter().enumerate() {
+                    let c: Vec<f32> =
+                        (0..2).map(|d| members.iter().map(|&i| at[i][d]).sum::<f32>() / members.len() as f32).collect();
                     line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
                 }
                 println!("    truth{line}");

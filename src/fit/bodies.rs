@@ -911,8 +911,9 @@ fn angle_diff(a: f64, b: f64) -> f64 {
 /// is an outlier and takes the position of the fit of its inlying neighbours; the other observed
 /// frames keep their registered position. Outside the observed span, the motion at its end
 /// continues at constant speed and turn rate (the path's curvature at the end, at most a
-/// [`MIN_TURN_RADIUS_M`] circle) for at most `max_extrapolation` (in the units of `times`), and
-/// is held after that. Needs four observed frames; with fewer the poses stay as tracked.
+/// [`MIN_TURN_RADIUS_M`] circle; no turn, along the line, for a body whose centres kept to one
+/// straight line while seen: [`straight_road`]) for at most `max_extrapolation` (in the units
+/// of `times`), and is held after that. Needs four observed frames; with fewer the poses stay as tracked.
 ///
 /// Returns how many observed frames the smooth motion holds within `outlier_m` (all of them when
 /// there are too few to fit).
