@@ -10,6 +10,7 @@ pub mod ntp;
 pub mod prepare;
 mod rigidity;
 pub mod tracks;
+pub mod visibility;
 pub mod windows;
 
 pub use crate::model::PhaseTimes;
@@ -17,6 +18,8 @@ pub use crate::model::params::{FitParams, FitParamsError, MAX_ITERATIONS, Method
 pub use windows::WindowProgress;
 
 use std::ops::ControlFlow;
+
+use rayon::prelude::*;
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
@@ -200,10 +203,16 @@ pub(crate) fn fit_single(
     let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
     let horizon = extrapolation_horizon(&axis);
     let mut model = if bodies {
+        // What each sweep's rays saw, ground and far returns included: a body's registration
+        // along its flank is checked against where the sensor looked through.
+        let rays: Option<Vec<visibility::SweepRays>> = model.frame_poses().map(|poses| {
+            sequence.frames.par_iter().zip(poses).map(|(f, pose)| visibility::SweepRays::new(f, pose)).collect()
+        });
         let found = bodies::find_moving_bodies(
             &points,
             &trees,
             &clusters,
+            rays.as_deref(),
             &times,
             horizon,
             &bodies::BodyParams::default(),

@@ -340,8 +340,10 @@ pub(crate) mod tests {
     /// positions, beside one fit of all the frames; the object keeps one id across the windows.
     #[test]
     fn a_body_moving_through_an_overlap_keeps_its_track() {
-        // Seed 4: two bodies found in both windows (picked by listing the bodies of seeds 1-11).
-        let sim = small_log(4, 16);
+        // Seed 8: two bodies found in both windows (picked by listing the bodies of seeds 1-11;
+        // seed 4's second body, seen in frames 0-9, is no longer found in the second window's
+        // four frames of it since the bodies' registration slides along their travel).
+        let sim = small_log(8, 16);
         let sequence = sim.to_fit_sequence();
         // Windows of 10 frames overlapping by at least 4: starts 0 and 6, hand-over at frame 8.
         let windowed = fit_sequence_with(&sequence, &quick_params(10, 4), &mut |_| ControlFlow::Continue(())).unwrap();
@@ -375,7 +377,8 @@ pub(crate) mod tests {
         let (windowed_m, windowed_points) = median_error(&windowed);
         let (single_m, _) = median_error(&single);
         assert!(windowed_points > 100, "{windowed_points} moving points on bodies");
-        // Measured: 0.098 m windowed, 0.101 m one fit.
+        // Measured (seed 8): 0.044 m windowed, 0.013 m one fit, 444 points (seed 4 before the
+        // slide: 0.098 and 0.101 m).
         assert!(windowed_m < single_m + 0.1, "windowed {windowed_m} m, one fit {single_m} m");
         assert!(windowed_m < 0.3, "windowed {windowed_m} m");
     }

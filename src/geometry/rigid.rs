@@ -192,6 +192,39 @@ pub fn fit_rigid_icp(
     iterations: usize,
     max_corr_dist_m: f32,
 ) -> Rigid {
+    icp(src, dst_tree, dst, init, &Rigid::identity(), iterations, max_corr_dist_m, fit_rigid)
+}
+
+/// [`fit_rigid_icp`] restricted to motions on the ground plane: the result is a turn about the
+/// z axis and a horizontal shift applied after `init`, so `init`'s height and tilt are kept.
+/// For road users, whose height on the road and tilt a sweep's horizontal rings leave free to
+/// drift (the ground under a car is removed, and a ring's height on its flank is the sensor's).
+pub fn fit_planar_icp(
+    src: &[Point],
+    dst_tree: &KdTree,
+    dst: &[Point],
+    init: Rigid,
+    iterations: usize,
+    max_corr_dist_m: f32,
+) -> Rigid {
+    let base_src: Vec<Point> = src.iter().map(|p| init.apply(p)).collect();
+    icp(&base_src, dst_tree, dst, Rigid::identity(), &Rigid::identity(), iterations, max_corr_dist_m, fit_planar)
+        .compose(&init)
+}
+
+/// The ICP loop of [`fit_rigid_icp`] with the motion refitted by `solve` (`base` applied to
+/// `src` first).
+#[allow(clippy::too_many_arguments)]
+fn icp(
+    src: &[Point],
+    dst_tree: &KdTree,
+    dst: &[Point],
+    init: Rigid,
+    base: &Rigid,
+    iterations: usize,
+    max_corr_dist_m: f32,
+    solve: fn(&[Point], &[Point]) -> Option<Rigid>,
+) -> Rigid {
     let mut current = init;
     if src.is_empty() || dst.is_empty() || dst_tree.len() != dst.len() {
         return current;
@@ -202,8 +235,9 @@ pub fn fit_rigid_icp(
     let mut pair_src = Vec::with_capacity(src.len());
     let mut pair_dst = Vec::with_capacity(src.len());
     for _ in 0..iterations {
+        let whole = current.compose(base);
         for (m, p) in moved.iter_mut().zip(src) {
-            *m = current.apply(p);
+            *m = whole.apply(p);
         }
         if !dst_tree.nearest_batch(&moved, &mut hits) {
             break;
@@ -212,14 +246,14 @@ pub fn fit_rigid_icp(
         pair_dst.clear();
         for (p, h) in src.iter().zip(&hits) {
             if h.dist2 <= max_d2 {
-                pair_src.push(*p);
+                pair_src.push(base.apply(p));
                 pair_dst.push(dst[h.index]);
             }
         }
         if pair_src.len() < 3 {
             break;
         }
-        let Some(next) = fit_rigid(&pair_src, &pair_dst) else {
+        let Some(next) = solve(&pair_src, &pair_dst) else {
             break;
         };
         let step = next.compose(&current.inverse());
@@ -230,6 +264,38 @@ pub fn fit_rigid_icp(
         }
     }
     current
+}
+
+/// The least-squares motion on the ground plane (a turn about the z axis and a horizontal
+/// shift) taking `src[i]` onto `dst[i]`, in closed form (two-dimensional Procrustes on x and
+/// y; heights are ignored). `None` under the conditions of [`fit_rigid`], or when the points
+/// coincide in x and y (the turn is not determined).
+pub fn fit_planar(src: &[Point], dst: &[Point]) -> Option<Rigid> {
+    if src.len() != dst.len() || src.is_empty() {
+        return None;
+    }
+    if src.iter().chain(dst).any(|p| !p.iter().all(|c| c.is_finite())) {
+        return None;
+    }
+    let n = src.len() as f64;
+    let mean = |points: &[Point], c: usize| points.iter().map(|p| f64::from(p[c])).sum::<f64>() / n;
+    let (sx, sy, dx, dy) = (mean(src, 0), mean(src, 1), mean(dst, 0), mean(dst, 1));
+    // The turn maximising Σ b · R a over centred pairs: atan2 of the cross and dot sums.
+    let (mut dot, mut cross, mut spread) = (0.0f64, 0.0f64, 0.0f64);
+    for (p, q) in src.iter().zip(dst) {
+        let (ax, ay) = (f64::from(p[0]) - sx, f64::from(p[1]) - sy);
+        let (bx, by) = (f64::from(q[0]) - dx, f64::from(q[1]) - dy);
+        dot += ax * bx + ay * by;
+        cross += ax * by - ay * bx;
+        spread += ax * ax + ay * ay + bx * bx + by * by;
+    }
+    // Coincident points leave every turn equally good; the threshold is relative, as in fit_rigid.
+    if dot.hypot(cross) <= 1e-9 * spread || spread == 0.0 {
+        return None;
+    }
+    let yaw = cross.atan2(dot);
+    let (sin, cos) = yaw.sin_cos();
+    Some(Rigid::from_yaw(yaw, [dx - (cos * sx - sin * sy), dy - (sin * sx + cos * sy), 0.0]))
 }
 
 #[cfg(test)]
@@ -276,6 +342,65 @@ mod tests {
             assert_close(&fit, &truth, 1e-5);
             assert!((fit.rotation_matrix().matrix().determinant() - 1.0).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn fit_planar_agrees_with_fit_rigid_on_planar_motions_and_ignores_heights() {
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        for _ in 0..20 {
+            let truth = Rigid::from_yaw(
+                rng.random_range(-3.0..3.0),
+                [rng.random_range(-10.0..10.0), rng.random_range(-10.0..10.0), 0.0],
+            );
+            let src: Vec<Point> = (0..200)
+                .map(|_| [rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0), rng.random_range(-2.0..2.0)])
+                .collect();
+            let dst: Vec<Point> = src.iter().map(|p| truth.apply(p)).collect();
+            // The general fit is the twin: on a planar motion both give it (f32 rounding only).
+            assert_close(&fit_planar(&src, &dst).unwrap(), &truth, 1e-5);
+            assert_close(&fit_rigid(&src, &dst).unwrap(), &truth, 1e-5);
+            // Targets lifted by 1.5 m change neither the turn nor the horizontal shift.
+            let lifted: Vec<Point> = dst.iter().map(|p| [p[0], p[1], p[2] + 1.5]).collect();
+            assert_close(&fit_planar(&src, &lifted).unwrap(), &truth, 1e-5);
+        }
+        let point = vec![[1.0f32, 2.0, 0.0]; 4];
+        let stacked: Vec<Point> = (0..4).map(|i| [1.0, 2.0, i as f32]).collect();
+        assert!(fit_planar(&point, &point).is_none(), "coincident points leave the turn free");
+        assert!(fit_planar(&stacked, &stacked).is_none(), "a vertical line leaves the turn free");
+        assert!(fit_planar(&point, &point[..2]).is_none());
+    }
+
+    #[test]
+    fn planar_icp_recovers_a_turn_and_shift_and_keeps_the_height_and_tilt_it_started_from() {
+        let mut rng = ChaCha8Rng::seed_from_u64(18);
+        // A car-sized cloud of scattered points (a shape with no sliding direction).
+        let dst: Vec<Point> = (0..600)
+            .map(|_| [rng.random_range(0.0..4.5), rng.random_range(0.0..1.8), rng.random_range(0.0..1.5)])
+            .collect();
+        let tree = KdTree::new(&dst);
+        let truth = Rigid::from_yaw(0.02, [0.06, -0.04, 0.0]);
+        let src: Vec<Point> = dst.iter().map(|p| truth.inverse().apply(p)).collect();
+        let found = fit_planar_icp(&src, &tree, &dst, Rigid::identity(), 100, 1.0);
+        assert_close(&found, &truth, 1e-4);
+        // The general ICP is the twin: on a planar motion both find it.
+        assert_close(&fit_rigid_icp(&src, &tree, &dst, Rigid::identity(), 100, 1.0), &truth, 1e-4);
+        // Started from a guess lifted by 0.1 m and tilted by 0.05 rad about x, the height and
+        // the tilt stay as they were (the general ICP would undo both): only a turn about z and
+        // a horizontal shift are added.
+        let tilted = Rigid::from_rotation(&Rotation3::from_axis_angle(&Vector3::x_axis(), 0.05), [0.0, 0.0, 0.1]);
+        let found = fit_planar_icp(&src, &tree, &dst, tilted, 100, 1.0);
+        let added = found.compose(&tilted.inverse());
+        assert!((added.translation[2]).abs() < 1e-9, "{added:?}");
+        assert!((added.rotation[2][2] - 1.0).abs() < 1e-12 && added.rotation[0][2].abs() < 1e-12, "{added:?}");
+        let general = fit_rigid_icp(&src, &tree, &dst, tilted, 100, 1.0);
+        assert_close(&general, &truth, 1e-4);
+        // A source scattered by noise still lands within the noise of the truth.
+        let noisy: Vec<Point> = src
+            .iter()
+            .map(|p| [p[0] + rng.random_range(-0.01..0.01), p[1] + rng.random_range(-0.01..0.01), p[2]])
+            .collect();
+        let found = fit_planar_icp(&noisy, &tree, &dst, Rigid::identity(), 100, 1.0);
+        assert_close(&found, &truth, 5e-3);
     }
 
     #[test]

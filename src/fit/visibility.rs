@@ -1,0 +1,126 @@
+//! What a sweep saw along its rays: whether a point placed in the scene would have been seen by
+//! the sensor, hidden behind a nearer return, or lies in space its rays passed through.
+//!
+//! A body's registration to its model from the body's own points is blind along a flank (the
+//! aperture problem: the rings along a car's side look the same wherever the car is along
+//! them). The rays are not: a model placed too far back leaves its front end where the sensor
+//! looked through to the road behind.
+
+use crate::geometry::Point;
+use crate::geometry::knn::KdTree;
+use crate::geometry::rigid::Rigid;
+
+/// A direction counts as a ray's when it lies within this angle (rad) of it: 1 degree, more
+/// than half the elevation spacing of a 32-beam sensor (1.3 degrees over 40), so a point
+/// between two rings still finds one.
+const MAX_RAY_ANGLE_RAD: f32 = 0.0175;
+
+/// How a point relates to one sweep's rays (the ray nearest its direction, and a margin).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sight {
+    /// The ray ends at the point, within the margin: the sensor saw something there.
+    Seen,
+    /// The ray ends the margin or more beyond the point: it passed through empty space there.
+    Passed,
+    /// The ray ends the margin or more before the point: something nearer hides it.
+    Hidden,
+    /// No ray passed near its direction (out of the field of view, sky, a dropped return).
+    Unknown,
+}
+
+/// One sweep's rays: the direction and range of every return, with the pose that takes fit
+/// coordinates to the sensor's.
+pub struct SweepRays {
+    fit_to_sensor: Rigid,
+    /// Unit directions of the returns, in sensor coordinates.
+    directions: KdTree,
+    ranges_m: Vec<f32>,
+}
+
+impl SweepRays {
+    /// The rays of a sweep given in sensor coordinates (ground and far points included: they
+    /// are what the sensor saw past a body), whose sensor-to-fit pose is `sensor_to_fit`.
+    pub fn new(sensor_points: &[Point], sensor_to_fit: &Rigid) -> Self {
+        let mut unit = Vec::with_capacity(sensor_points.len());
+        let mut ranges_m = Vec::with_capacity(sensor_points.len());
+        for p in sensor_points {
+            let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+            if r.is_finite() && r > 1e-3 {
+                unit.push([p[0] / r, p[1] / r, p[2] / r]);
+                ranges_m.push(r);
+            }
+        }
+        Self { fit_to_sensor: sensor_to_fit.inverse(), directions: KdTree::new(&unit), ranges_m }
+    }
+
+    /// How the sensor saw `point` (fit coordinates), with the ray nearest its direction and a
+    /// margin `margin_m` on the ray's range.
+    pub fn sight(&self, point: &Point, margin_m: f32) -> Sight {
+        let p = self.fit_to_sensor.apply(point);
+        let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        if !r.is_finite() || r <= 1e-3 {
+            return Sight::Unknown;
+        }
+        // Chord length on the unit sphere: the angle for small angles.
+        let max_chord2 = MAX_RAY_ANGLE_RAD * MAX_RAY_ANGLE_RAD;
+        match self.directions.nearest(&[p[0] / r, p[1] / r, p[2] / r]) {
+            Some(hit) if hit.dist2 <= max_chord2 => {
+                let range_m = self.ranges_m[hit.index];
+                if range_m <= r - margin_m {
+                    Sight::Hidden
+                } else if range_m >= r + margin_m {
+                    Sight::Passed
+                } else {
+                    Sight::Seen
+                }
+            }
+            _ => Sight::Unknown,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A sensor at `origin` (fit coordinates) that sees a wall 20 m ahead along x, and a post
+    /// 5 m ahead that covers the directions within 0.1 rad of the x axis.
+    fn wall_with_post(origin: [f64; 3]) -> (Vec<Point>, Rigid) {
+        let mut points = Vec::new();
+        for i in -40..=40 {
+            for e in -10..=10 {
+                let (az, el) = (i as f32 * 0.01, e as f32 * 0.01);
+                let range = if az.abs() <= 0.1 && el.abs() <= 0.1 { 5.0 } else { 20.0 };
+                points.push([range * el.cos() * az.cos(), range * el.cos() * az.sin(), range * el.sin()]);
+            }
+        }
+        (points, Rigid::from_yaw(0.0, origin))
+    }
+
+    #[test]
+    fn a_point_before_the_wall_is_passed_one_on_it_seen_one_behind_the_post_hidden_one_off_the_rays_unknown() {
+        let origin = [3.0, -2.0, 1.0];
+        let (points, pose) = wall_with_post(origin);
+        let rays = SweepRays::new(&points, &pose);
+        // A point at range_m along azimuth and elevation (rad) from the sensor, in fit coordinates.
+        let at = |range_m: f32, az: f32, el: f32| {
+            let d = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
+            std::array::from_fn(|c| range_m * d[c] + origin[c] as f32)
+        };
+        // In the open, 10 m out along a ray that reaches the wall at 20 m; between two rays.
+        assert_eq!(rays.sight(&at(10.0, 0.25, 0.0), 0.3), Sight::Passed);
+        assert_eq!(rays.sight(&at(10.0, 0.255, 0.035), 0.3), Sight::Passed);
+        assert_eq!(rays.sight(&at(19.8, 0.25, 0.0), 0.3), Sight::Seen);
+        // On the wall itself, and just behind it within the margin.
+        assert_eq!(rays.sight(&at(20.0, 0.25, 0.0), 0.3), Sight::Seen);
+        assert_eq!(rays.sight(&at(20.2, 0.25, 0.0), 0.3), Sight::Seen);
+        assert_eq!(rays.sight(&at(5.0, 0.0, 0.05), 0.3), Sight::Seen);
+        // Behind the post (5 m) at 10 m along the axis.
+        assert_eq!(rays.sight(&at(10.0, 0.0, 0.0), 0.3), Sight::Hidden);
+        // Behind the wall by more than the margin.
+        assert_eq!(rays.sight(&at(21.0, 0.25, 0.0), 0.3), Sight::Hidden);
+        // Above the field of view (0.1 rad, and the margin of a ray's reach) and behind the sensor.
+        assert_eq!(rays.sight(&at(10.0, 0.0, 0.3), 0.3), Sight::Unknown);
+        assert_eq!(rays.sight(&at(10.0, 3.1, 0.0), 0.3), Sight::Unknown);
+    }
+}
