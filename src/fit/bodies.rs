@@ -103,6 +103,10 @@ const SLOW_SEED_GAP: usize = 3;
 /// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
 /// randomness, and the result does not depend on the thread count.
 ///
+/// `rays[k]`, when given, are what sweep k's rays saw (its raw points, ground included, with its
+/// pose): each registration is then slid along the body's travel onto them. The sensor must
+/// have been where the poses put it (raw sweeps in sensor coordinates, not ego-compensated).
+///
 /// A body is predicted at most `max_extrapolation` (in the units of `times`) past the frames it
 /// was seen in; beyond, its pose is held (see `super::extrapolation_horizon`).
 ///
