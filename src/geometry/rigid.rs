@@ -192,7 +192,7 @@ pub fn fit_rigid_icp(
     iterations: usize,
     max_corr_dist_m: f32,
 ) -> Rigid {
-    icp(src, dst_tree, dst, init, &Rigid::identity(), iterations, max_corr_dist_m, fit_rigid)
+    icp(src, dst_tree, dst, init, iterations, max_corr_dist_m, fit_rigid)
 }
 
 /// [`fit_rigid_icp`] restricted to motions on the ground plane: the result is a turn about the
@@ -208,19 +208,15 @@ pub fn fit_planar_icp(
     max_corr_dist_m: f32,
 ) -> Rigid {
     let base_src: Vec<Point> = src.iter().map(|p| init.apply(p)).collect();
-    icp(&base_src, dst_tree, dst, Rigid::identity(), &Rigid::identity(), iterations, max_corr_dist_m, fit_planar)
-        .compose(&init)
+    icp(&base_src, dst_tree, dst, Rigid::identity(), iterations, max_corr_dist_m, fit_planar).compose(&init)
 }
 
-/// The ICP loop of [`fit_rigid_icp`] with the motion refitted by `solve` (`base` applied to
-/// `src` first).
-#[allow(clippy::too_many_arguments)]
+/// The ICP loop of [`fit_rigid_icp`] with the motion refitted by `solve`.
 fn icp(
     src: &[Point],
     dst_tree: &KdTree,
     dst: &[Point],
     init: Rigid,
-    base: &Rigid,
     iterations: usize,
     max_corr_dist_m: f32,
     solve: fn(&[Point], &[Point]) -> Option<Rigid>,
@@ -235,9 +231,8 @@ fn icp(
     let mut pair_src = Vec::with_capacity(src.len());
     let mut pair_dst = Vec::with_capacity(src.len());
     for _ in 0..iterations {
-        let whole = current.compose(base);
         for (m, p) in moved.iter_mut().zip(src) {
-            *m = whole.apply(p);
+            *m = current.apply(p);
         }
         if !dst_tree.nearest_batch(&moved, &mut hits) {
             break;
@@ -246,7 +241,7 @@ fn icp(
         pair_dst.clear();
         for (p, h) in src.iter().zip(&hits) {
             if h.dist2 <= max_d2 {
-                pair_src.push(base.apply(p));
+                pair_src.push(*p);
                 pair_dst.push(dst[h.index]);
             }
         }
