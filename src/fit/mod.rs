@@ -264,12 +264,12 @@ pub(crate) fn extrapolation_horizon(axis: &TimeAxis) -> f64 {
 const FREE_MIN_GAIN_M: f64 = 0.1;
 /// ...and at most this share of the still distance...
 const FREE_MAX_SHARE: f64 = 0.5;
-/// ...and the network moves it by at least this much per frame (m; 0.8 m/s at 10 Hz, slower
+/// ...and the network moves it by at least this much per frame along the ground (m; 0.8 m/s at 10 Hz, slower
 /// than a walk): a network that slid the still world (0.5-1 m over 25 frames, docs/benchmarks.md
 /// section 11) moves it by 0.02-0.04 m per frame, and some of those slid points happen to land
 /// nearer the sparse neighbouring sweeps.
 const FREE_MIN_MOTION_M: f64 = 0.08;
-/// A point the network moves by at least this much per frame (m; 3 m/s at 10 Hz, ten times the
+/// A point the network moves by at least this much per frame along the ground (m; 3 m/s at 10 Hz, ten times the
 /// static slide of section 3) is free too when its network positions are no farther from the
 /// neighbouring sweeps than its still position: a car moving along its own length keeps part of
 /// its still position on its own next sweep (the aperture problem), so the gain test alone misses
@@ -313,13 +313,17 @@ fn network_free_points(model: &FittedModel, frames: &[&[Point]], trees: &[&KdTre
                     }
                     let count = near.len().max(1) as f64;
                     let (still, net) = (still / count, net / count);
-                    // Mean displacement per frame the network gives the point.
+                    // Mean horizontal displacement per frame the network gives the point. Street
+                    // things that move move along the ground; a network that lifts a wall's points
+                    // by a ring spacing onto the next sweep's ring (0.4 m on the real pair,
+                    // docs/benchmarks.md section 20) explains the sweeps better than the still
+                    // world without anything having moved.
                     let travel: f64 = near
                         .iter()
                         .enumerate()
                         .map(|(n, &j)| {
                             let q = &moved[i * near.len() + n];
-                            let d: f64 = (0..3).map(|c| f64::from(q[c] - points[i][c]).powi(2)).sum::<f64>().sqrt();
+                            let d: f64 = (0..2).map(|c| f64::from(q[c] - points[i][c]).powi(2)).sum::<f64>().sqrt();
                             d / (j.abs_diff(k) as f64)
                         })
                         .sum::<f64>()
