@@ -13,7 +13,7 @@
 //!
 //! Under each object, the same errors for its points that a body holds. With
 //! `BODY_DIAG_PATH=1`, also the object's true path (centre of its frame-0 points, fit
-//! coordinates, every frame); with `BODY_DIAG_PROBE=N`, what N rounds of point-to-point ICP (30 when N
+//! coordinates, every frame) and where the model carries the same points; with `BODY_DIAG_PROBE=N`, what N rounds of point-to-point ICP (30 when N
 //! is not a number) recover between two of its sweeps (its own points only, from standing
 //! still) against the true motion.
 
@@ -189,6 +189,21 @@ fn main() -> anyhow::Result<()> {
                     line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
                 }
                 println!("    truth{line}");
+                // Where the model carries the same points, in fit coordinates.
+                let member_points: Vec<Point> = members.iter().map(|&i| sim.frames[0][i]).collect();
+                let every: Vec<f64> = ts.to_vec();
+                let carried = model.positions(&member_points, ts[0], &every)?;
+                let mut line = String::new();
+                for (j, to_fit) in to_first.iter().enumerate() {
+                    let c: Vec<f32> = (0..2)
+                        .map(|d| {
+                            (0..member_points.len()).map(|i| to_fit.apply(&carried[i * every.len() + j])[d]).sum::<f32>()
+                                / member_points.len() as f32
+                        })
+                        .collect();
+                    line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
+                }
+                println!("    model{line}");
             }
         }
         // What each body holds over all frames, by the kind of the simulator's objects.
