@@ -197,7 +197,9 @@ fn main() -> anyhow::Result<()> {
                 for (j, to_fit) in to_first.iter().enumerate() {
                     let c: Vec<f32> = (0..2)
                         .map(|d| {
-                            (0..member_points.len()).map(|i| to_fit.apply(&carried[i * every.len() + j])[d]).sum::<f32>()
+                            (0..member_points.len())
+                                .map(|i| to_fit.apply(&carried[i * every.len() + j])[d])
+                                .sum::<f32>()
                                 / member_points.len() as f32
                         })
                         .collect();
