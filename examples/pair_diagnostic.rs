@@ -70,6 +70,8 @@ fn main() -> anyhow::Result<()> {
     let (kept, _) = mbnt::geometry::ground::preprocess(&sequence.frames[0], &pre)?;
     let kept_set: std::collections::HashSet<[u32; 3]> =
         kept.iter().map(|&i| sequence.frames[0][i as usize].map(f32::to_bits)).collect();
+    let all_members: Vec<Point> = model.bodies().iter().flat_map(|b| b.members[0].iter().copied()).collect();
+    let members_tree = mbnt::geometry::knn::KdTree::new(&all_members);
     let report = |title: &str, members: &[usize]| {
         println!("{title}: {} points", members.len());
         let pts: Vec<Point> = members.iter().map(|&k| points[k]).collect();
@@ -125,10 +127,8 @@ fn main() -> anyhow::Result<()> {
                 let fitted = free.iter().filter(|&&k| kept_set.contains(&points[k].map(f32::to_bits))).count();
                 println!("    free: {fitted} of them kept by the fit's pre-processing");
                 // Distance to the nearest body member of frame 0, and whether inside a body's box.
-                let all: Vec<Point> = model.bodies().iter().flat_map(|b| b.members[0].iter().copied()).collect();
-                let tree = mbnt::geometry::knn::KdTree::new(&all);
                 let mut d: Vec<f32> =
-                    free.iter().filter_map(|&k| tree.nearest(&points[k]).map(|h| h.dist2.sqrt())).collect();
+                    free.iter().filter_map(|&k| members_tree.nearest(&points[k]).map(|h| h.dist2.sqrt())).collect();
                 d.sort_by(f32::total_cmp);
                 let inside = free
                     .iter()

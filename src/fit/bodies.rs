@@ -423,8 +423,7 @@ fn track_body(
         let moved = mean_distance_m(&src, &poses[j], trees[j], cap_m, &mut scratch);
         // For a seed as long as a car, the sensor's rays say what the distances cannot of one
         // moving along its own flank, which left standing still overlaps its next sweep.
-        let by_rays = long_seed && rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j]));
-        if is_clear(still, moved) || by_rays {
+        if is_clear(still, moved) || (long_seed && rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j]))) {
             clear += 1;
             clear_points += on_body[j].points.len();
             continue;
@@ -569,12 +568,15 @@ fn horizontal_length_m(points: &[Point]) -> f64 {
 /// from a still one (seed 120's turning car, 5 m/s: 0.19 m standing against 0.14 m carried three
 /// frames on, docs/benchmarks.md section 20); the road seen where its rear was can.
 fn moving_by_rays(src: &[Point], motion: &Rigid, rays: &SweepRays) -> bool {
-    let passed =
-        |motion: &Rigid| src.iter().filter(|p| rays.sight(&motion.apply(p), RAY_MARGIN_M) == Sight::Passed).count();
-    let still_passed = passed(&Rigid::identity());
+    let still_passed = passed_through(src, &Rigid::identity(), rays);
     still_passed > 0
         && still_passed as f64 >= RAY_CLEAR_MIN_SHARE * src.len() as f64
-        && RAY_CLEAR_LEFT_DIVISOR * passed(motion) <= still_passed
+        && RAY_CLEAR_LEFT_DIVISOR * passed_through(src, motion, rays) <= still_passed
+}
+
+/// How many of `src` carried by `motion` lie where the `rays` passed through empty space.
+fn passed_through(src: &[Point], motion: &Rigid, rays: &SweepRays) -> usize {
+    src.iter().filter(|p| rays.sight(&motion.apply(p), RAY_MARGIN_M) == Sight::Passed).count()
 }
 
 /// A member point is still world when, left where it is, it lies this close (m) to every
@@ -1653,13 +1655,12 @@ mod tests {
         // 71 of its 439 points left standing lie where frame 4's rays went on to the road
         // behind, 5 carried by its true motion.
         let rays = SweepRays::new(&sim.frames[4], &to_first[4]);
-        let passed = |m: &Rigid| src.iter().filter(|p| rays.sight(&m.apply(p), RAY_MARGIN_M) == Sight::Passed).count();
         assert!(
             moving_by_rays(&src, &truth, &rays),
             "{} of {} points passed standing, {} carried",
-            passed(&Rigid::identity()),
+            passed_through(&src, &Rigid::identity(), &rays),
             src.len(),
-            passed(&truth)
+            passed_through(&src, &truth, &rays)
         );
         // The parked car is still: carried by no motion, or by a made-up one, it is never clear.
         assert!(!moving_by_rays(&still_src, &Rigid::identity(), &rays));

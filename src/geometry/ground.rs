@@ -27,13 +27,17 @@ use super::Point;
 /// Largest grid the estimate may allocate (cells); 2^22 f32 cells are 16 MiB.
 pub const MAX_GRID_CELLS: usize = 1 << 22;
 
+/// The default [`GroundParams::tolerance_m`] (m): 0.3 m as the research code. Nothing of a
+/// fitted frame lies this close above the ground, which the scene model's bodies allow for.
+pub const GROUND_TOLERANCE_M: f32 = 0.3;
+
 /// Parameters of the local ground estimate.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GroundParams {
     /// Side of a grid cell (m). 0.5 m resolves curbs and car sides while a near-range cell still
     /// holds dozens of returns.
     pub cell_m: f32,
-    /// A point at most this far above the local ground is ground (m); 0.3 m as the research code.
+    /// A point at most this far above the local ground is ground (m); [`GROUND_TOLERANCE_M`] by default.
     pub tolerance_m: f32,
     /// Largest ground slope followed by the estimate (rise per run, m/m). 0.2 (11°) covers steep
     /// streets and ramps; walls and vehicles are far steeper.
@@ -54,7 +58,7 @@ impl Default for GroundParams {
     fn default() -> Self {
         Self {
             cell_m: 0.5,
-            tolerance_m: 0.3,
+            tolerance_m: GROUND_TOLERANCE_M,
             max_slope: 0.2,
             cell_quantile: 0.1,
             pit_depth_m: 0.5,

@@ -72,13 +72,12 @@ pub struct FittedModel {
 /// away do not.
 const TRACK_MEMBER_RADIUS_M: f32 = 0.4;
 
-/// The fit keeps no point within this height (m) of the local ground
-/// (`geometry::ground::GroundParams::tolerance_m`), so a body's lowest part (wheels, bumpers,
-/// sills) has no member point: a query point that lies within [`TRACK_MEMBER_RADIUS_M`] of a
-/// body's members once raised by this much is on the body too. On the real pair of
-/// docs/benchmarks.md this brings the cars' lowest 0.3 m (156 of 3,568 moving points, held still
-/// before) onto their bodies.
-const BODY_UNDERSIDE_M: f32 = 0.3;
+/// The fit keeps no point within this height (m) of the local ground (the default ground
+/// tolerance), so a body's lowest part (wheels, bumpers, sills) has no member point: a query
+/// point that lies within [`TRACK_MEMBER_RADIUS_M`] of a body's members once raised by this much
+/// is on the body too. On the real pair of docs/benchmarks.md this brings the cars' lowest 0.3 m
+/// (156 of 3,568 moving points, held still before) onto their bodies.
+const BODY_UNDERSIDE_M: f32 = crate::geometry::ground::GROUND_TOLERANCE_M;
 
 /// Query points are evaluated in chunks of this many, bounding memory for large queries.
 const QUERY_CHUNK: usize = 16_384;
