@@ -552,12 +552,11 @@ const RAY_CLEAR_MIN_LENGTH_M: f64 = 2.0;
 
 /// The longest horizontal extent (m) of `points`: the larger side of their x-y box.
 fn horizontal_length_m(points: &[Point]) -> f64 {
-    let side = |c: usize| {
-        let (lo, hi) =
-            points.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| (lo.min(p[c]), hi.max(p[c])));
-        f64::from(hi - lo)
-    };
-    if points.is_empty() { 0.0 } else { side(0).max(side(1)) }
+    if points.is_empty() {
+        return 0.0;
+    }
+    let b = Aabb::of(points.iter());
+    f64::from((b.max[0] - b.min[0]).max(b.max[1] - b.min[1]))
 }
 
 /// Whether `src` (a body's seed points, fit coordinates) is clearly moving by a frame's `rays`:

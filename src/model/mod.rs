@@ -405,7 +405,7 @@ impl FittedModel {
     /// Per point (fit coordinates, observed at fractional frame `u_obs`): the index of the body
     /// it lies on, if any: within [`TRACK_MEMBER_RADIUS_M`] of the body's member points of the
     /// frames around `u_obs`, moved to `u_obs` along the body, or so once raised by
-    /// [`BODY_UNDERSIDE_M`].
+    /// [`BODY_UNDERSIDE_M`] when the fit removed the ground.
     pub(crate) fn body_members(&self, points: &[Point], u_obs: f64) -> Vec<Option<usize>> {
         let last = self.time_axis.frames() - 1;
         let below = (u_obs.floor() as usize).min(last);
@@ -425,11 +425,14 @@ impl FittedModel {
         }
         let tree = KdTree::new(&members);
         let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
+        // Only a fit that removed the ground lacks the bodies' undersides (a model file without
+        // its parameters is from a default fit, which removes it).
+        let underside = self.report.params.as_ref().is_none_or(|p| p.remove_ground);
         points
             .iter()
             .map(|p| {
                 let near = |q: &Point| tree.nearest(q).filter(|h| h.dist2 <= max_d2).map(|h| owner[h.index]);
-                near(p).or_else(|| near(&[p[0], p[1], p[2] + BODY_UNDERSIDE_M]))
+                near(p).or_else(|| if underside { near(&[p[0], p[1], p[2] + BODY_UNDERSIDE_M]) } else { None })
             })
             .collect()
     }
@@ -600,5 +603,12 @@ mod tests {
         }
         let ids = model.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]);
         assert_eq!(ids[1], vec![0, -1, -1]);
+        // A fit that kept the ground has the bodies' undersides among their members: the point
+        // 0.47 m below a member is the road there, and stays.
+        let mut kept_ground = scene_model();
+        let params = crate::model::params::FitParams { remove_ground: Some(false), ..Default::default() };
+        kept_ground.report.params = Some(params.check(Method::Mbnt).unwrap());
+        let ids = kept_ground.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]);
+        assert_eq!(ids[1], vec![-1, -1, -1]);
     }
 }
