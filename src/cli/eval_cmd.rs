@@ -58,6 +58,21 @@ pub struct EvalArgs {
     /// First frames of the spans of `--span-frames`: 0, this, twice this, ...
     #[arg(long, default_value_t = 25, value_parser = clap::value_parser!(u64).range(1..))]
     pub span_every: u64,
+    /// Score frames `FIRST` to `FIRST + frames - 1` of a simulated sequence of `--log-frames`
+    /// frames, as a job of their own: a window of a long log fitted alone, for comparison with
+    /// the log's windowed fit (issue 21).
+    #[arg(long, value_name = "FIRST", default_value_t = 0, conflicts_with = "dir")]
+    pub first_frame: usize,
+    /// Frames of the simulated sequence `--first-frame` takes its frames from (default: just
+    /// enough). The simulator places its scene for the whole sequence, so a log's window is
+    /// scored on the log's own frames only when this is the log's length.
+    #[arg(long, value_name = "FRAMES", conflicts_with = "dir")]
+    pub log_frames: Option<usize>,
+    /// Keep each fitted model in this directory and score a model found there instead of
+    /// fitting it again (one file per sequence, method, frames and parameters): re-scoring a
+    /// fit after a change to how models answer takes seconds instead of a fit.
+    #[arg(long, value_name = "DIR")]
+    pub models: Option<PathBuf>,
 }
 
 /// Long-term metrics of one span of frames (`--span-frames`).
@@ -585,12 +600,53 @@ fn flows_from(sim: &Labelled, next_position: impl Fn(usize, &Point) -> Point) ->
 
 /// Fits `method` and predicts with the model; with rigid tracks or moving bodies also the same
 /// fit's network alone (the second prediction), so both come from one fit.
-fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Result<(Prediction, Option<Prediction>)> {
+/// Where `--models DIR` keeps the model of `method` fitted with `params` on `sim`: the file name
+/// carries the sequence's name and frames, the method and a hash of the checked parameters.
+fn model_path(dir: &Path, sim: &Labelled, method: Method, params: &ValidFitParams) -> anyhow::Result<PathBuf> {
+    let json = serde_json::to_string(params)?;
+    // FNV-1a: a stable name for the parameters (std's hasher may change between releases).
+    let hash = json.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3));
+    let name: String = sim.name.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '-' }).collect();
+    Ok(dir.join(format!("{name}-{}f-{}-{hash:016x}.mbnt", sim.frames.len(), method.name())))
+}
+
+fn run_method(
+    sim: &Labelled,
+    method: Method,
+    params: &FitParams,
+    models: Option<&Path>,
+) -> anyhow::Result<(Prediction, Option<Prediction>)> {
     let params = params.check(method)?;
     let sequence =
         Sequence { frames: sim.frames.clone(), timestamps_s: Some(sim.timestamps_s.clone()), poses: sim.poses.clone() };
+    let cached = models.map(|dir| model_path(dir, sim, method, &params)).transpose()?;
+    let model = match &cached {
+        Some(path) if path.exists() => {
+            eprintln!("  {}: scoring the model kept in {}", method.name(), path.display());
+            let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            crate::model::FittedModel::from_bytes(&bytes)
+                .map_err(|e| anyhow::anyhow!("{} is not a model: {e}", path.display()))?
+        }
+        _ => {
+            let model = fit_with_progress(&sequence, method, &params)?;
+            if let Some(path) = &cached {
+                std::fs::create_dir_all(path.parent().expect("a file in a directory"))?;
+                std::fs::write(path, model.to_bytes()?).with_context(|| format!("writing {}", path.display()))?;
+            }
+            model
+        }
+    };
+    score_model(sim, &sequence, method, &params, &model)
+}
+
+/// Fits `method`, printing its progress on stderr.
+fn fit_with_progress(
+    sequence: &Sequence,
+    method: Method,
+    params: &ValidFitParams,
+) -> anyhow::Result<crate::model::FittedModel> {
     let mut last_print = std::time::Instant::now();
-    let model = fit_sequence(&sequence, method, &params, &mut |p| {
+    let model = fit_sequence(sequence, method, params, &mut |p| {
         if let Some(v) = &p.validation_loss {
             eprintln!(
                 "  {} validation at iteration {}: loss {:.5} = chamfer {:.5} + cycle {:.5} + rigidity {:.5}; \
@@ -616,6 +672,17 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
         }
         ControlFlow::Continue(())
     })?;
+    Ok(model)
+}
+
+/// The predictions of a fitted model (and of its network alone, when it has tracks or bodies).
+fn score_model(
+    sim: &Labelled,
+    sequence: &Sequence,
+    method: Method,
+    params: &ValidFitParams,
+    model: &crate::model::FittedModel,
+) -> anyhow::Result<(Prediction, Option<Prediction>)> {
     let predict = |model: &crate::model::FittedModel| -> anyhow::Result<Prediction> {
         let flows = model.scene_flow(&sequence.frames);
         let ts = &sim.timestamps_s;
@@ -647,7 +714,7 @@ fn run_method(sim: &Labelled, method: Method, params: &FitParams) -> anyhow::Res
     } else {
         None
     };
-    Ok((predict(&model)?, network_alone))
+    Ok((predict(model)?, network_alone))
 }
 
 /// Runs `mbnt eval` and prints a table (and JSON when asked).
@@ -665,8 +732,19 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     if args.dir.is_empty() {
         for &seed in &args.seeds {
-            let sim = simulate(&SimParams { seed, frames: args.frames, ..SimParams::default() })?;
-            let labelled = Labelled::from_sim(format!("seed {seed}"), &sim)?;
+            let whole = args.log_frames.unwrap_or(args.first_frame + args.frames);
+            anyhow::ensure!(
+                args.first_frame + args.frames <= whole,
+                "--log-frames {whole} is shorter than --first-frame + --frames"
+            );
+            let mut sim = simulate(&SimParams { seed, frames: whole, ..SimParams::default() })?;
+            let mut name = format!("seed {seed}");
+            if whole > args.frames {
+                let range = args.first_frame..args.first_frame + args.frames;
+                name = format!("seed {seed} frames {}-{} of {whole}", range.start, range.end - 1);
+                sim = sim.frames_range(range)?;
+            }
+            let labelled = Labelled::from_sim(name, &sim)?;
             sequences.push(if args.span_frames > 0 {
                 labelled.with_spans(&sim, args.span_frames, args.span_every as usize)?
             } else {
@@ -690,7 +768,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         let methods: &[Method] = if args.baselines_only { &[] } else { &args.methods };
         for &method in methods {
             eprintln!("{}: fitting {}", seq.name, method.name());
-            let (pred, network_alone) = run_method(seq, method, &params)?;
+            let (pred, network_alone) = run_method(seq, method, &params, args.models.as_deref())?;
             if let Some(alone) = network_alone {
                 let name = format!("{} (same fit, without tracks)", method.name());
                 results.push(score(&name, seq, &evaluated, &alone, still));
@@ -830,6 +908,29 @@ mod tests {
         );
         let without = Labelled { poses: None, ..seq };
         assert!(ego_poses_motion(&without).unwrap().is_none());
+    }
+
+    #[test]
+    fn a_kept_model_is_scored_again_without_a_fit_and_answers_the_same() {
+        let sim = simulate(&SimParams { seed: 5, frames: 3, ..SimParams::default() }).unwrap();
+        let seq = Labelled::from_sim("seed 5".into(), &sim).unwrap();
+        let params: FitParams =
+            serde_json::from_str(r#"{"iterations": 2, "hidden_width": 16, "hidden_layers": 2, "sample_points": 512}"#)
+                .unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let (fitted, _) = run_method(&seq, Method::Mbnt, &params, Some(dir.path())).unwrap();
+        let kept: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(kept.len(), 1, "one model file");
+        let (again, _) = run_method(&seq, Method::Mbnt, &params, Some(dir.path())).unwrap();
+        assert_eq!(again.end_positions, fitted.end_positions);
+        assert_eq!(again.flows, fitted.flows);
+        // Other parameters are another model.
+        let other = FitParams { iterations: Some(3), ..params.clone() }.check(Method::Mbnt).unwrap();
+        let same = params.check(Method::Mbnt).unwrap();
+        assert_ne!(
+            model_path(dir.path(), &seq, Method::Mbnt, &other).unwrap(),
+            model_path(dir.path(), &seq, Method::Mbnt, &same).unwrap()
+        );
     }
 
     #[test]

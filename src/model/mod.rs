@@ -32,7 +32,7 @@ mod windows;
 pub use check::NonFiniteModel;
 pub use objects::{MovingBody, RigidTrack};
 pub use report::{FitReport, FrameReport, PhaseTimes};
-pub use time::{QueryError, TimeAxis};
+pub use time::{MAX_EXTRAPOLATION_S, QueryError, TimeAxis};
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;

@@ -31,7 +31,26 @@ pub enum QueryError {
     },
 }
 
+/// How long (s) a moving body or rigid track is predicted past the frames it was seen in;
+/// beyond, its pose is held. A body that left the view is otherwise driven on at constant
+/// velocity for the rest of a long log (issue 21: 75 frames, until the numbers overflowed).
+/// 3 s is longer than a 25-frame window at 10 Hz (2.4 s), whose results it leaves unchanged.
+pub const MAX_EXTRAPOLATION_S: f64 = 3.0;
+
+/// The frame rate taken for a sequence without timestamps (its times are frame indices): the
+/// 10 Hz of the datasets' LiDARs, so that the horizon is [`MAX_EXTRAPOLATION_S`] there too.
+const FRAME_RATE_WITHOUT_TIMESTAMPS_HZ: f64 = 10.0;
+
 impl TimeAxis {
+    /// [`MAX_EXTRAPOLATION_S`] in the units of the axis's times (s, or frame indices).
+    pub fn extrapolation_horizon(&self) -> f64 {
+        if self.timestamps_s.is_some() {
+            MAX_EXTRAPOLATION_S
+        } else {
+            MAX_EXTRAPOLATION_S * FRAME_RATE_WITHOUT_TIMESTAMPS_HZ
+        }
+    }
+
     /// A time axis over `frames` frames, in seconds when `timestamps_s` is given.
     pub fn new(timestamps_s: Option<Vec<f64>>, frames: usize) -> Self {
         Self { timestamps_s, frames }

@@ -190,6 +190,31 @@ impl FittedModel {
         })
     }
 
+    /// The log-wide object id of each window's moving bodies (per window, in the order of its
+    /// model's bodies); empty for a model of one fit.
+    pub fn window_object_ids(&self) -> Vec<Vec<u32>> {
+        match &self.motion {
+            Motion::Windows(windows) => windows.iter().map(|w| w.object_ids.clone()).collect(),
+            _ => Vec::new(),
+        }
+    }
+
+    /// How the bodies of neighbouring windows overlap, as the linking into objects sees it: per
+    /// pair of windows `(w - 1, w)`, each pair of bodies (index in window `w - 1`, index in
+    /// window `w`) with members in the overlap and the share of those members lying on the
+    /// other body's (pairs at 0.5 or more are linked, the highest first). Empty for a model of
+    /// one fit.
+    pub fn window_link_shares(&self) -> Vec<Vec<(usize, usize, f64)>> {
+        let Motion::Windows(windows) = &self.motion else { return Vec::new() };
+        let to_log: Vec<Rigid> = match &self.frame_poses {
+            Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
+            None => vec![Rigid::identity(); windows.len()],
+        };
+        (1..windows.len())
+            .map(|w| link_shares(windows, &to_log, w).into_iter().map(|(share, a, b)| (a, b, share)).collect())
+            .collect()
+    }
+
     /// The windows of a stitched model (first frame in the log, and the window's own model);
     /// empty for a model of one fit.
     pub fn windows(&self) -> Vec<(usize, &FittedModel)> {
@@ -224,7 +249,16 @@ pub(super) fn positions(
     // window takes them over, and the body of that window each one arrives on.
     let mut entry: Vec<Option<Entry>> = vec![None; hi - lo + 1];
     entry[home - lo] = Some(Entry { points: points.to_vec(), t: t_obs, carried: None });
-    let hand_over = |from: usize, to: usize, current: &Entry, handoff: usize| -> Result<Entry, QueryError> {
+    let to_log = window_to_log(model, windows);
+    // Points that leave a window on a body whose object the next window does not hold (a car
+    // that window saw too sparsely to find again): they stay on that body, carried on past its
+    // window (`body_pose_beyond`), for every time past the hand-over.
+    let hand_over = |from: usize,
+                     to: usize,
+                     current: &Entry,
+                     handoff: usize,
+                     orphans: &mut [Option<Orphan>]|
+     -> Result<Entry, QueryError> {
         let window = &windows[from];
         let t_handoff = axis.frame_time(handoff);
         let (moved, owners) = window.model.positions_carried(
@@ -235,22 +269,36 @@ pub(super) fn positions(
         )?;
         // The next window's part of each point's object, if it has one.
         let next = &windows[to];
-        let carried = owners
+        let carried: Vec<Option<usize>> = owners
             .iter()
             .map(|owner| {
                 let object = window.object_ids[(*owner)?];
                 next.object_ids.iter().position(|&o| o == object)
             })
             .collect();
+        let sensor_to_log = model.frame_poses.as_ref().map(|poses| pose_at(poses, handoff as f64));
+        for (i, (owner, next_part)) in owners.iter().zip(&carried).enumerate() {
+            if let (Some(body), None, None) = (*owner, next_part, &orphans[i]) {
+                let in_log = sensor_to_log.map_or(moved[i], |pose| pose.apply(&moved[i]));
+                let at = to_log[from].inverse().apply(&in_log);
+                orphans[i] = Some(Orphan { window: from, body, at, t: t_handoff, first_owner: to });
+            }
+        }
         Ok(Entry { points: moved, t: t_handoff, carried: Some(carried) })
     };
+    // Orphans forward and backward from the home window are kept apart: a time is answered
+    // from one side of home only.
+    let mut forward_orphans: Vec<Option<Orphan>> = vec![None; points.len()];
     for w in home + 1..=hi {
         let from = entry[w - 1 - lo].as_ref().expect("filled in order");
-        entry[w - lo] = Some(hand_over(w - 1, w, from, handoffs[w - 1])?);
+        let next = hand_over(w - 1, w, from, handoffs[w - 1], &mut forward_orphans)?;
+        entry[w - lo] = Some(next);
     }
+    let mut backward_orphans: Vec<Option<Orphan>> = vec![None; points.len()];
     for w in (lo..home).rev() {
         let from = entry[w + 1 - lo].as_ref().expect("filled in order");
-        entry[w - lo] = Some(hand_over(w + 1, w, from, handoffs[w])?);
+        let next = hand_over(w + 1, w, from, handoffs[w], &mut backward_orphans)?;
+        entry[w - lo] = Some(next);
     }
     let n_times = times.len();
     for w in lo..=hi {
@@ -263,13 +311,97 @@ pub(super) fn positions(
         let local: Vec<f64> = asked.iter().map(|&j| window.local_time(axis, times[j])).collect();
         let (answers, _) =
             window.model.positions_carried(&at.points, window.local_time(axis, at.t), &local, at.carried.as_deref())?;
+        let orphans = if w > home { &forward_orphans } else { &backward_orphans };
         for i in 0..points.len() {
+            let orphan = orphans[i].as_ref().filter(|o| if w > home { w >= o.first_owner } else { w <= o.first_owner });
             for (n, &j) in asked.iter().enumerate() {
-                out[i * n_times + j] = answers[i * asked.len() + n];
+                out[i * n_times + j] = match orphan {
+                    Some(o) => o.position(model, windows, &to_log, times[j], u_times[j]),
+                    None => answers[i * asked.len() + n],
+                };
             }
         }
     }
     Ok(out)
+}
+
+/// Each window's fit coordinates -> the log's (its first frame's sensor coordinates with poses,
+/// as the log's are frame 0's; the identity without).
+fn window_to_log(model: &FittedModel, windows: &[Window]) -> Vec<Rigid> {
+    match &model.frame_poses {
+        Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
+        None => vec![Rigid::identity(); windows.len()],
+    }
+}
+
+/// A query point that left `window` on its body `body` at log time `t` (`at`: its position then,
+/// in the window's fit coordinates), into a window without that body's object: the times of
+/// window `first_owner` and beyond (away from where the query started) follow the body,
+/// carried on past its window ([`body_pose_beyond`]).
+#[derive(Debug, Clone)]
+struct Orphan {
+    window: usize,
+    body: usize,
+    at: Point,
+    t: f64,
+    first_owner: usize,
+}
+
+impl Orphan {
+    /// Where the point is at log time `time` (fractional log frame `u`), in the sensor
+    /// coordinates of that time.
+    fn position(&self, model: &FittedModel, windows: &[Window], to_log: &[Rigid], time: f64, u: f64) -> Point {
+        let window = &windows[self.window];
+        let axis = &model.time_axis;
+        let from = body_pose_beyond(window, self.body, window.local_time(axis, self.t));
+        let to = body_pose_beyond(window, self.body, window.local_time(axis, time));
+        let in_log = to_log[self.window].apply(&to.compose(&from.inverse()).apply(&self.at));
+        match &model.frame_poses {
+            Some(poses) => pose_at(poses, u).inverse().apply(&in_log),
+            None => in_log,
+        }
+    }
+}
+
+/// The pose of body `b` of `window` (the window's fit coordinates) at `t` on the window's own
+/// time axis, also outside its frames. Inside, as the window's model answers. Past the last
+/// frame (before the first), the body's motion at that end goes on at constant velocity and
+/// turn rate (the end step repeated, as the fit carries a body on inside its window), up to the
+/// axis's extrapolation horizon past the last (first) frame the body was seen in, and is held
+/// after that: a body that leaves a window keeps moving as it did while the next window, which
+/// does not know it, owns the time.
+fn body_pose_beyond(window: &Window, b: usize, t: f64) -> Rigid {
+    let axis = &window.model.time_axis;
+    let body = &window.model.bodies[b];
+    let last = axis.frames() - 1;
+    if let Ok(u) = axis.to_frame_index(t) {
+        return pose_at(&body.poses, u);
+    }
+    let forward = t > axis.frame_time(last);
+    let (edge, inner) = if forward { (last, last - 1) } else { (0, 1) };
+    let horizon = axis.extrapolation_horizon();
+    let seen = body.frames_seen();
+    let t = if forward {
+        let bound = seen.last().map_or(f64::NEG_INFINITY, |&k| axis.frame_time(k) + horizon);
+        t.min(bound.max(axis.frame_time(edge)))
+    } else {
+        let bound = seen.first().map_or(f64::INFINITY, |&k| axis.frame_time(k) - horizon);
+        t.max(bound.min(axis.frame_time(edge)))
+    };
+    let step = (axis.frame_time(edge) - axis.frame_time(inner)).abs();
+    let steps = (t - axis.frame_time(edge)).abs() / step;
+    if !steps.is_finite() || steps <= 0.0 {
+        return body.poses[edge];
+    }
+    // The last step, edge from its inner neighbour, applied again `steps` times (whole steps,
+    // then the fraction of one interpolated as between frames).
+    let delta = body.poses[edge].compose(&body.poses[inner].inverse());
+    let whole = steps.floor();
+    let mut before = body.poses[edge];
+    for _ in 0..whole as usize {
+        before = delta.compose(&before);
+    }
+    pose_at(&[before, delta.compose(&before)], steps - whole)
 }
 
 /// Where a query enters a window of a stitched model.
@@ -314,27 +446,8 @@ fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
         let mut mine: Vec<Option<u32>> = vec![None; window.model.bodies.len()];
         if w > 0 {
             let previous = &windows[w - 1];
-            let overlap = window.start..previous.end();
-            // Members of each body in each overlap frame, in the log's fit coordinates.
-            let members = |win: &Window, to: &Rigid, body: &MovingBody, k: usize| -> Vec<Point> {
-                body.members[k - win.start].iter().map(|p| to.apply(p)).collect()
-            };
-            let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
-            for (a, body_a) in previous.model.bodies.iter().enumerate() {
-                for (b, body_b) in window.model.bodies.iter().enumerate() {
-                    let (mut near, mut total) = (0usize, 0usize);
-                    for k in overlap.clone() {
-                        let pa = members(previous, &to_log[w - 1], body_a, k);
-                        let pb = members(window, &to_log[w], body_b, k);
-                        near += near_count(&pa, &pb) + near_count(&pb, &pa);
-                        total += pa.len() + pb.len();
-                    }
-                    let share = if total == 0 { 0.0 } else { near as f64 / total as f64 };
-                    if share >= LINK_MIN_SHARE {
-                        pairs.push((share, a, b));
-                    }
-                }
-            }
+            let mut pairs: Vec<(f64, usize, usize)> =
+                link_shares(windows, to_log, w).into_iter().filter(|&(share, _, _)| share >= LINK_MIN_SHARE).collect();
             pairs.sort_by(|x, y| y.0.total_cmp(&x.0));
             let mut taken = vec![false; previous.model.bodies.len()];
             for (_, a, b) in pairs {
@@ -356,6 +469,34 @@ fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
         );
     }
     Objects { ids, count: count as usize }
+}
+
+/// For each pair of a body of window `w - 1` and one of window `w` (`w >= 1`) with members in
+/// their overlap: the share of both bodies' member points in the overlap's frames that lie
+/// within [`TRACK_MEMBER_RADIUS_M`] of the other's members of the same frame, and the pair.
+fn link_shares(windows: &[Window], to_log: &[Rigid], w: usize) -> Vec<(f64, usize, usize)> {
+    let (previous, window) = (&windows[w - 1], &windows[w]);
+    let overlap = window.start..previous.end();
+    // Members of a body in an overlap frame, in the log's fit coordinates.
+    let members = |win: &Window, to: &Rigid, body: &MovingBody, k: usize| -> Vec<Point> {
+        body.members[k - win.start].iter().map(|p| to.apply(p)).collect()
+    };
+    let mut pairs = Vec::new();
+    for (a, body_a) in previous.model.bodies.iter().enumerate() {
+        for (b, body_b) in window.model.bodies.iter().enumerate() {
+            let (mut near, mut total) = (0usize, 0usize);
+            for k in overlap.clone() {
+                let pa = members(previous, &to_log[w - 1], body_a, k);
+                let pb = members(window, &to_log[w], body_b, k);
+                near += near_count(&pa, &pb) + near_count(&pb, &pa);
+                total += pa.len() + pb.len();
+            }
+            if total > 0 {
+                pairs.push((near as f64 / total as f64, a, b));
+            }
+        }
+    }
+    pairs
 }
 
 /// How many of `points` lie within [`TRACK_MEMBER_RADIUS_M`] of one of `others`.
@@ -445,6 +586,74 @@ mod tests {
         assert!(check_windows(&TimeAxis::new(None, 8), true, &gap).unwrap_err().contains("overlap"));
         assert!(check_windows(&TimeAxis::new(None, 10), true, &windows).unwrap_err().contains("end at frame 9"));
         assert!(check_windows(&TimeAxis::new(None, 9), false, &windows).unwrap_err().contains("poses"));
+    }
+
+    #[test]
+    fn a_body_leaving_its_window_goes_on_at_its_last_velocity_up_to_the_horizon() {
+        // scene_model()'s body drives 1 m per frame along x; frames 1 s apart, so the horizon
+        // is 3 s past the last frame seen.
+        let mut model = scene_model();
+        model.time_axis = TimeAxis::new(Some(vec![0.0, 1.0, 2.0, 3.0]), 4);
+        let window = Window { start: 0, model, object_ids: vec![0] };
+        let x = |t: f64| body_pose_beyond(&window, 0, t).translation[0];
+        for (t, want) in [(1.5, 1.5), (4.0, 4.0), (5.5, 5.5), (6.0, 6.0), (10.0, 6.0), (-2.5, -2.5), (-9.0, -3.0)] {
+            assert!((x(t) - want).abs() < 1e-9, "t = {t}: x = {} instead of {want}", x(t));
+        }
+        // Seen last at frame 1: carried on inside the window already, held 3 s after frame 1.
+        let mut early = window.clone();
+        early.model.bodies[0].observed = vec![true, true, false, false];
+        let x = |t: f64| body_pose_beyond(&early, 0, t).translation[0];
+        assert!((x(3.5) - 3.5).abs() < 1e-9 && (x(7.0) - 4.0).abs() < 1e-9, "{} {}", x(3.5), x(7.0));
+    }
+
+    #[test]
+    fn a_point_whose_body_the_next_window_lacks_stays_on_it() {
+        // Two 4-frame windows over 6 frames (starts 0 and 2, hand-over at frame 3): the car is a
+        // body of the first window only (the second did not find it again: too far, too sparse).
+        let first = scene_model();
+        let mut second = scene_model();
+        second.bodies.clear();
+        let stitched = FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 6),
+            Some(vec![Rigid::identity(); 6]),
+            FitReport::default(),
+            vec![(0, first.clone()), (2, second.clone())],
+        )
+        .unwrap();
+        // Past the hand-over the point follows the first window's car, 1 m per frame; a point
+        // of the still world stays.
+        let at = stitched.positions(&[[0.2, 0.1, 0.0], [10.0, 10.0, 0.0]], 0.0, &[2.0, 4.0, 5.0]).unwrap();
+        let want = [
+            [2.2, 0.1, 0.0],
+            [4.2, 0.1, 0.0],
+            [5.2, 0.1, 0.0],
+            [10.0, 10.0, 0.0],
+            [10.0, 10.0, 0.0],
+            [10.0, 10.0, 0.0],
+        ];
+        for (got, want) in at.iter().zip(&want) {
+            assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-4), "{at:?}");
+        }
+        // Backward: the car is a body of the second window only; a point on it at frame 5
+        // (x = 3.2 in the second window, which starts at frame 2) is followed back to frame 0.
+        let mut empty = first;
+        empty.bodies.clear();
+        let mut car = scene_model();
+        car.bodies[0].poses.iter_mut().for_each(|p| p.translation[0] += 2.0);
+        car.bodies[0].members.iter_mut().flatten().for_each(|p| p[0] += 2.0);
+        let stitched = FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 6),
+            Some(vec![Rigid::identity(); 6]),
+            FitReport::default(),
+            vec![(0, empty), (2, car)],
+        )
+        .unwrap();
+        let back = stitched.positions(&[[5.2, 0.1, 0.0]], 5.0, &[4.0, 0.0]).unwrap();
+        for (got, want) in back.iter().zip([[4.2, 0.1, 0.0], [0.2, 0.1, 0.0]]) {
+            assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{back:?}");
+        }
     }
 
     #[test]

@@ -243,6 +243,31 @@ impl SimSequence {
         Ok(self.truth[k].iter().map(|t| self.objects[t.object_id as usize].dynamic).collect())
     }
 
+    /// The frames `range` of the sequence as a sequence of their own (their times, poses, truth
+    /// and the objects' poses at those frames; the scene is the whole sequence's): a window of a
+    /// long log scored as a short job on the same frames.
+    pub fn frames_range(&self, range: std::ops::Range<usize>) -> Result<SimSequence, SimError> {
+        if range.is_empty() {
+            return Err(SimError::FrameOutOfRange { index: range.start, frames: self.frames.len() });
+        }
+        self.check_frame(range.end - 1)?;
+        let objects =
+            self.objects.iter().map(|o| ObjectInfo { poses: o.poses[range.clone()].to_vec(), ..o.clone() }).collect();
+        let mut summary = self.summary.clone();
+        summary.frames = range.len();
+        summary.points_per_frame = summary.points_per_frame[range.clone()].to_vec();
+        summary.ground_points_per_frame = summary.ground_points_per_frame[range.clone()].to_vec();
+        summary.dynamic_points_per_frame = summary.dynamic_points_per_frame[range.clone()].to_vec();
+        Ok(SimSequence {
+            frames: self.frames[range.clone()].to_vec(),
+            timestamps_s: self.timestamps_s[range.clone()].to_vec(),
+            ego_poses: self.ego_poses[range.clone()].to_vec(),
+            truth: self.truth[range].to_vec(),
+            objects,
+            summary,
+        })
+    }
+
     /// The sequence as the fitting code takes it: frames, timestamps and sensor poses.
     pub fn to_fit_sequence(&self) -> crate::fit::Sequence {
         crate::fit::Sequence {

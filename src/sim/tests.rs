@@ -334,3 +334,19 @@ fn report_default_scene_numbers() {
         );
     }
 }
+
+#[test]
+fn a_range_of_frames_is_the_same_frames_with_the_same_truth() {
+    let seq = default_sequence();
+    let part = seq.frames_range(3..7).unwrap();
+    assert_eq!(part.frames.len(), 4);
+    assert_eq!(part.frames[0], seq.frames[3]);
+    assert_eq!(part.timestamps_s, seq.timestamps_s[3..7].to_vec());
+    assert_eq!(part.ego_poses, seq.ego_poses[3..7].to_vec());
+    assert_eq!(part.summary.points_per_frame, seq.summary.points_per_frame[3..7].to_vec());
+    // The exact motion between two of its frames is the whole sequence's between the same two.
+    assert_eq!(part.positions_at(0, 3).unwrap(), seq.positions_at(3, 6).unwrap());
+    assert_eq!(part.is_dynamic(2).unwrap(), seq.is_dynamic(5).unwrap());
+    assert!(seq.frames_range(3..3).is_err());
+    assert!(seq.frames_range(20..seq.frames.len() + 1).is_err());
+}
