@@ -296,6 +296,7 @@ fn track_body(
     on_body[k] = Picked { points: clusters[k][c].clone(), clusters: vec![c] };
     let max_src = params.seed.max_track_points;
     let seed_centre = centroid(&model);
+    let seed_model_points = model.len();
     for forward in [true, false] {
         let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
         let mut previous = Rigid::identity();
@@ -462,6 +463,16 @@ fn track_body(
     let heading = travel_heading(&poses, k, centre);
     let body_to_seed = Rigid::from_yaw(heading, centre);
     let seed_to_body = body_to_seed.inverse();
+    // Two things side by side across the travel (DBSCAN merged a car with the parked car it
+    // drove past, in the frames where they nearly touched): the side holding the seed is the
+    // body; the model and the members leave the other.
+    if let Some((lo, hi)) = seed_side_across(&model, seed_model_points, &seed_to_body) {
+        model.retain(|p| (lo..=hi).contains(&seed_to_body.apply(p)[1]));
+        for j in (0..t).filter(|&j| observed[j]) {
+            let to_body = seed_to_body.compose(&poses[j].inverse());
+            on_body[j].points.retain(|&i| (lo..=hi).contains(&to_body.apply(&frames[j][i as usize])[1]));
+        }
+    }
     let mut extent_min_m = [f32::INFINITY; 3];
     let mut extent_max_m = [f32::NEG_INFINITY; 3];
     for p in &model {
@@ -538,6 +549,40 @@ fn track_body(
         && 2 * clear_points >= tested_points
         && travel_m >= min_travel_m;
     Tracked { body, clusters: clusters_on_body, moving }
+}
+
+/// A body model wider than [`MAX_WIDTH_M`] across its travel is split where its points leave
+/// an empty strip at least this wide (m) across it...
+const SPLIT_GAP_M: f32 = 0.4;
+/// ...and each part keeps this margin (m) about its points.
+const SPLIT_MARGIN_M: f32 = 0.1;
+
+/// For a model (seed-frame coordinates, its first `seed_points` from the seed's cluster) wider
+/// than [`MAX_WIDTH_M`] across the travel (`seed_to_body`: y across), cut by empty strips of
+/// [`SPLIT_GAP_M`]: the span across (body frame, m, with [`SPLIT_MARGIN_M`]) of the part holding
+/// most of the seed's points. None when it is not that wide or no strip cuts it.
+fn seed_side_across(model: &[Point], seed_points: usize, seed_to_body: &Rigid) -> Option<(f32, f32)> {
+    let mut across: Vec<f32> = model.iter().map(|p| seed_to_body.apply(p)[1]).collect();
+    let seed: Vec<f32> = across[..seed_points.min(across.len())].to_vec();
+    across.sort_by(f32::total_cmp);
+    let (first, last) = (*across.first()?, *across.last()?);
+    if last - first <= MAX_WIDTH_M {
+        return None;
+    }
+    let mut parts = vec![(first, first)];
+    for pair in across.windows(2) {
+        if pair[1] - pair[0] >= SPLIT_GAP_M {
+            parts.push((pair[1], pair[1]));
+        } else {
+            parts.last_mut().expect("one part at least").1 = pair[1];
+        }
+    }
+    if parts.len() < 2 {
+        return None;
+    }
+    let holding = |&(lo, hi): &(f32, f32)| seed.iter().filter(|&&y| (lo..=hi).contains(&y)).count();
+    let (lo, hi) = parts.iter().copied().max_by_key(holding)?;
+    Some((lo - SPLIT_MARGIN_M, hi + SPLIT_MARGIN_M))
 }
 
 /// A ray ending this far (m) or more beyond a point passed through empty space there.
@@ -1564,6 +1609,31 @@ mod tests {
         // Straight at 10 m/s: a line too, but too fast for smooth_poses to take it (0.3 m per frame).
         let drive = straight_path(&pool, &times, &centres(&|t| (10.0 * t, 0.0))).unwrap();
         assert!(drive.speed() * 0.1 > MAX_LINE_STEP_M);
+    }
+
+    #[test]
+    fn a_model_two_lanes_wide_keeps_the_side_of_its_seed() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        // Body frame = seed frame here (x along the travel, y across). A car (4.2 x 1.8 m) and,
+        // 0.6 m beside its flank, a parked car the seed's cluster did not hold.
+        let car: Vec<Point> = box_surface(&mut rng, 3000, [4.2, 1.8, 1.5]);
+        let parked: Vec<Point> =
+            box_surface(&mut rng, 1500, [4.5, 1.8, 1.4]).iter().map(|p| [p[0] + 0.5, p[1] + 2.4, p[2]]).collect();
+        let seed_points = 2000;
+        let model: Vec<Point> = car.iter().chain(&parked).copied().collect();
+        let identity = Rigid::identity();
+        let (lo, hi) = seed_side_across(&model, seed_points, &identity).expect("split");
+        let car_span = Aabb::of(car.iter());
+        assert!((lo - (car_span.min[1] - SPLIT_MARGIN_M)).abs() < 1e-4, "{lo}");
+        assert!((hi - (car_span.max[1] + SPLIT_MARGIN_M)).abs() < 1e-4, "{hi}");
+        assert!(parked.iter().all(|p| p[1] > hi), "the parked car is left out");
+        // The seed on the parked car's side keeps that side.
+        let (lo, _) = seed_side_across(&[parked.clone(), car.clone()].concat(), 1000, &identity).unwrap();
+        assert!(lo > car_span.max[1], "{lo}");
+        // Narrow enough, or wide without an empty strip across: nothing to split.
+        assert_eq!(seed_side_across(&car, 100, &identity), None);
+        let wide: Vec<Point> = box_surface(&mut rng, 4000, [4.0, 4.0, 1.5]);
+        assert_eq!(seed_side_across(&wide, 100, &identity), None);
     }
 
     #[test]
