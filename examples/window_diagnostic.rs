@@ -67,6 +67,7 @@ fn main() -> anyhow::Result<()> {
     let targets: Vec<usize> = (from + 1..=to).collect();
     let times: Vec<f64> = targets.iter().map(|&j| ts[j]).collect();
     let predicted = model.positions(frame, ts[from], &times)?;
+    let exact: Vec<Vec<[f32; 3]>> = targets.iter().map(|&j| sim.positions_at(from, j)).collect::<Result<_, _>>()?;
     for (object, members) in &objects {
         let labels: std::collections::BTreeMap<i32, usize> = members.iter().fold(Default::default(), |mut m, &i| {
             *m.entry(ids[i]).or_default() += 1;
@@ -75,11 +76,10 @@ fn main() -> anyhow::Result<()> {
         println!("object {object}: {} points, labelled {labels:?}", members.len());
         let mut line = String::new();
         for (n, &j) in targets.iter().enumerate() {
-            let exact = sim.positions_at(from, j)?;
             let (mut within, mut sum_m) = (0usize, 0f64);
             for &i in members {
                 let p = predicted[i * targets.len() + n];
-                let d = (0..3).map(|c| f64::from(p[c] - exact[i][c]).powi(2)).sum::<f64>().sqrt();
+                let d = (0..3).map(|c| f64::from(p[c] - exact[n][i][c]).powi(2)).sum::<f64>().sqrt();
                 sum_m += d;
                 within += usize::from(d < 0.5);
             }
@@ -100,8 +100,8 @@ fn main() -> anyhow::Result<()> {
     }
     // Still points (not ground) that end 0.5 m or more off at `to`, by the model's label at
     // `from` and the simulator's object.
-    let exact = sim.positions_at(from, to)?;
     let n = targets.len();
+    let exact = &exact[n - 1];
     let mut off: std::collections::BTreeMap<(i32, u32), (usize, f64)> = Default::default();
     let mut still = 0usize;
     for (i, t) in truth.iter().enumerate() {

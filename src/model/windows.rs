@@ -151,10 +151,7 @@ impl FittedModel {
         check_windows(&time_axis, frame_poses.is_some(), &windows)?;
         // Window-to-log transforms of fit coordinates: a window's fit coordinates are its first
         // frame's sensor coordinates (with poses), the log's are frame 0's.
-        let to_log: Vec<Rigid> = match &frame_poses {
-            Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
-            None => vec![Rigid::identity(); windows.len()],
-        };
+        let to_log = window_to_log(frame_poses.as_deref(), &windows);
         let objects = link_bodies(&windows, &to_log);
         for (window, ids) in windows.iter_mut().zip(&objects.ids) {
             window.object_ids.clone_from(ids);
@@ -206,10 +203,7 @@ impl FittedModel {
     /// one fit.
     pub fn window_link_shares(&self) -> Vec<Vec<(usize, usize, f64)>> {
         let Motion::Windows(windows) = &self.motion else { return Vec::new() };
-        let to_log: Vec<Rigid> = match &self.frame_poses {
-            Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
-            None => vec![Rigid::identity(); windows.len()],
-        };
+        let to_log = window_to_log(self.frame_poses.as_deref(), windows);
         (1..windows.len())
             .map(|w| link_shares(windows, &to_log, w).into_iter().map(|(share, a, b)| (a, b, share)).collect())
             .collect()
@@ -249,7 +243,7 @@ pub(super) fn positions(
     // window takes them over, and the body of that window each one arrives on.
     let mut entry: Vec<Option<Entry>> = vec![None; hi - lo + 1];
     entry[home - lo] = Some(Entry { points: points.to_vec(), t: t_obs, carried: None });
-    let to_log = window_to_log(model, windows);
+    let to_log = window_to_log(model.frame_poses.as_deref(), windows);
     // Points that leave a window on a body whose object the next window does not hold (a car
     // that window saw too sparsely to find again): they stay on that body, carried on past its
     // window (`body_pose_beyond`), for every time past the hand-over.
@@ -280,8 +274,9 @@ pub(super) fn positions(
         for (i, (owner, next_part)) in owners.iter().zip(&carried).enumerate() {
             if let (Some(body), None, None) = (*owner, next_part, &orphans[i]) {
                 let in_log = sensor_to_log.map_or(moved[i], |pose| pose.apply(&moved[i]));
-                let at = to_log[from].inverse().apply(&in_log);
-                orphans[i] = Some(Orphan { window: from, body, at, t: t_handoff, first_owner: to });
+                let on_body = body_pose_beyond(window, body, window.local_time(axis, t_handoff)).inverse();
+                let at = on_body.apply(&to_log[from].inverse().apply(&in_log));
+                orphans[i] = Some(Orphan { window: from, body, at, first_owner: to });
             }
         }
         Ok(Entry { points: moved, t: t_handoff, carried: Some(carried) })
@@ -325,25 +320,24 @@ pub(super) fn positions(
     Ok(out)
 }
 
-/// Each window's fit coordinates -> the log's (its first frame's sensor coordinates with poses,
-/// as the log's are frame 0's; the identity without).
-fn window_to_log(model: &FittedModel, windows: &[Window]) -> Vec<Rigid> {
-    match &model.frame_poses {
+/// Each window's fit coordinates -> the log's: its first frame's sensor coordinates with poses
+/// (`frame_poses`, sensor -> frame 0's), as the log's are frame 0's; the identity without.
+fn window_to_log(frame_poses: Option<&[Rigid]>, windows: &[Window]) -> Vec<Rigid> {
+    match frame_poses {
         Some(poses) => windows.iter().map(|w| poses[w.start]).collect(),
         None => vec![Rigid::identity(); windows.len()],
     }
 }
 
-/// A query point that left `window` on its body `body` at log time `t` (`at`: its position then,
-/// in the window's fit coordinates), into a window without that body's object: the times of
-/// window `first_owner` and beyond (away from where the query started) follow the body,
-/// carried on past its window ([`body_pose_beyond`]).
+/// A query point that left `window` on its body `body` (`at`: its position in the body's own
+/// coordinates) into a window without that body's object: the times of window `first_owner` and
+/// beyond (away from where the query started) follow the body, carried on past its window
+/// ([`body_pose_beyond`]).
 #[derive(Debug, Clone)]
 struct Orphan {
     window: usize,
     body: usize,
     at: Point,
-    t: f64,
     first_owner: usize,
 }
 
@@ -352,10 +346,8 @@ impl Orphan {
     /// coordinates of that time.
     fn position(&self, model: &FittedModel, windows: &[Window], to_log: &[Rigid], time: f64, u: f64) -> Point {
         let window = &windows[self.window];
-        let axis = &model.time_axis;
-        let from = body_pose_beyond(window, self.body, window.local_time(axis, self.t));
-        let to = body_pose_beyond(window, self.body, window.local_time(axis, time));
-        let in_log = to_log[self.window].apply(&to.compose(&from.inverse()).apply(&self.at));
+        let body_pose = body_pose_beyond(window, self.body, window.local_time(&model.time_axis, time));
+        let in_log = to_log[self.window].apply(&body_pose.apply(&self.at));
         match &model.frame_poses {
             Some(poses) => pose_at(poses, u).inverse().apply(&in_log),
             None => in_log,
@@ -477,18 +469,23 @@ fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
 fn link_shares(windows: &[Window], to_log: &[Rigid], w: usize) -> Vec<(f64, usize, usize)> {
     let (previous, window) = (&windows[w - 1], &windows[w]);
     let overlap = window.start..previous.end();
-    // Members of a body in an overlap frame, in the log's fit coordinates.
-    let members = |win: &Window, to: &Rigid, body: &MovingBody, k: usize| -> Vec<Point> {
-        body.members[k - win.start].iter().map(|p| to.apply(p)).collect()
+    // Each body's members in each overlap frame, in the log's fit coordinates.
+    let members = |win: &Window, to: &Rigid| -> Vec<Vec<Vec<Point>>> {
+        win.model
+            .bodies
+            .iter()
+            .map(|body| {
+                overlap.clone().map(|k| body.members[k - win.start].iter().map(|p| to.apply(p)).collect()).collect()
+            })
+            .collect()
     };
+    let (before, after) = (members(previous, &to_log[w - 1]), members(window, &to_log[w]));
     let mut pairs = Vec::new();
-    for (a, body_a) in previous.model.bodies.iter().enumerate() {
-        for (b, body_b) in window.model.bodies.iter().enumerate() {
+    for (a, frames_a) in before.iter().enumerate() {
+        for (b, frames_b) in after.iter().enumerate() {
             let (mut near, mut total) = (0usize, 0usize);
-            for k in overlap.clone() {
-                let pa = members(previous, &to_log[w - 1], body_a, k);
-                let pb = members(window, &to_log[w], body_b, k);
-                near += near_count(&pa, &pb) + near_count(&pb, &pa);
+            for (pa, pb) in frames_a.iter().zip(frames_b) {
+                near += near_count(pa, pb) + near_count(pb, pa);
                 total += pa.len() + pb.len();
             }
             if total > 0 {
