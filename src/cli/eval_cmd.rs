@@ -737,7 +737,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 args.first_frame + args.frames <= whole,
                 "--log-frames {whole} is shorter than --first-frame + --frames"
             );
-            let mut sim = simulate(&SimParams { seed, frames: whole, ..SimParams::default() })?;
+            let mut sim = simulate(&SimParams::log(seed, whole))?;
             let mut name = format!("seed {seed}");
             if whole > args.frames {
                 let range = args.first_frame..args.first_frame + args.frames;

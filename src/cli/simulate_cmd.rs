@@ -48,7 +48,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
         anyhow::bail!("--format must be bin or ply, got {:?}", args.format);
     }
     let started = std::time::Instant::now();
-    let sim = simulate(&SimParams { seed: args.seed, frames: args.frames, ..SimParams::default() })?;
+    let sim = simulate(&SimParams::log(args.seed, args.frames))?;
     eprintln!(
         "simulated {} frames in {:.2} s ({} points in frame 0)",
         sim.frames.len(),

@@ -26,7 +26,7 @@ use std::ops::ControlFlow;
 
 use super::{FitError, Progress, Sequence, fit_coordinates, fit_single, validate_sequence};
 use crate::model::FittedModel;
-use crate::model::params::{Method, OdometryMode, ValidFitParams};
+use crate::model::params::{Method, ValidFitParams};
 
 /// Where a windowed fit is: which window is being fitted, of how many.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -109,7 +109,7 @@ pub fn fit_sequence_resuming(
     // window re-expresses them relative to its own first frame.)
     let world: Option<Vec<[f64; 16]>> =
         coordinates.frame_poses.as_ref().map(|poses| poses.iter().map(|p| p.to_row_major()).collect());
-    let window_params = ValidFitParams { odometry: OdometryMode::Off, ..params.clone() };
+    let window_params = params.for_window();
     let frames = sequence.frames.len();
     let starts = window_starts(frames, params.window_frames, params.window_overlap_frames);
     let mut windows = Vec::with_capacity(starts.len());
@@ -132,7 +132,7 @@ pub fn fit_sequence_resuming(
             // One report for the window, so that progress shows it done and a cancel is heard.
             let done = Progress {
                 iteration: model.report().iterations,
-                iterations: params.iterations,
+                iterations: window_params.iterations,
                 loss: super::LossTerms::default(),
                 best_validation_loss: model.report().best_validation_loss,
                 validation_loss: None,

@@ -238,6 +238,13 @@ pub struct FitParams {
     /// `window_frames`. A trajectory passes from one window to the next at the middle frame of
     /// the overlap, and moving bodies are linked by their points there.
     pub window_overlap_frames: Option<usize>,
+    /// **Ours (fast default 100; otherwise, or when `iterations` is given, `iterations`):** the
+    /// iterations of each window of a sequence fitted as windows; the rigidity warm-up of a
+    /// window is at most half of them. Why fewer than a 25-frame job's: a window's answers come
+    /// from the still world and the moving bodies, which do not depend on the network, and the
+    /// network answers only the free points (docs/benchmarks.md section 23: spans of 100- and
+    /// 150-frame logs within 2 points of 25-frame default jobs at a fraction of the time).
+    pub window_iterations: Option<usize>,
 }
 
 /// A parameter that is out of range, by name.
@@ -340,7 +347,35 @@ pub struct ValidFitParams {
     /// See [`FitParams::window_overlap_frames`].
     #[serde(default = "default_window_overlap_frames")]
     pub window_overlap_frames: usize,
+    /// See [`FitParams::window_iterations`]; `None` in records written before it existed, whose
+    /// windows ran `iterations` ([`ValidFitParams::iterations_per_window`]).
+    #[serde(default)]
+    pub window_iterations: Option<usize>,
 }
+
+impl ValidFitParams {
+    /// Iterations of each window of a sequence fitted as windows.
+    pub fn iterations_per_window(&self) -> usize {
+        self.window_iterations.unwrap_or(self.iterations)
+    }
+
+    /// The parameters each window of a sequence fitted as windows is fitted with: its
+    /// iterations, the rigidity warm-up at most half of them (so that the multi-body term
+    /// reaches its full weight inside the window's budget), and no odometry of its own (the
+    /// log's poses are settled once, for every window).
+    pub fn for_window(&self) -> ValidFitParams {
+        let iterations = self.iterations_per_window();
+        ValidFitParams {
+            iterations,
+            rigidity_warmup_iterations: self.rigidity_warmup_iterations.min(iterations / 2),
+            odometry: OdometryMode::Off,
+            ..self.clone()
+        }
+    }
+}
+
+/// Default of [`FitParams::window_iterations`] in fast mode.
+pub const DEFAULT_FAST_WINDOW_ITERATIONS: usize = 100;
 
 /// Default of [`FitParams::window_frames`]: the 25 frames method.md fits at a time.
 pub const DEFAULT_WINDOW_FRAMES: usize = 25;
@@ -414,6 +449,14 @@ impl FitParams {
             1,
             window_frames - 1,
         )?;
+        let iterations = int_in("iterations", self.iterations, default_iterations, 1, MAX_ITERATIONS)?;
+        // An explicit `iterations` is what the user asked of every fit, windows included.
+        let default_window_iterations = match self.iterations {
+            None if fast && method.is_trajectory() => DEFAULT_FAST_WINDOW_ITERATIONS,
+            _ => iterations,
+        };
+        let window_iterations =
+            int_in("window_iterations", self.window_iterations, default_window_iterations, 1, MAX_ITERATIONS)?;
         Ok(ValidFitParams {
             mode,
             sample_points: int_in("sample_points", self.sample_points, if fast { 8192 } else { 0 }, 0, 10_000_000)?,
@@ -424,7 +467,7 @@ impl FitParams {
                 0,
                 MAX_ITERATIONS,
             )?,
-            iterations: int_in("iterations", self.iterations, default_iterations, 1, MAX_ITERATIONS)?,
+            iterations,
             seed: self.seed.unwrap_or(0),
             learning_rate: float_in("learning_rate", self.learning_rate, 0.003, 1e-7, 1.0)?,
             lr_halve_every: int_in("lr_halve_every", self.lr_halve_every, 500, 1, MAX_ITERATIONS)?,
@@ -482,6 +525,7 @@ impl FitParams {
             max_range_m: float_in("max_range_m", self.max_range_m, 80.0, 1.0, 10_000.0)?,
             window_frames,
             window_overlap_frames,
+            window_iterations: Some(window_iterations),
         })
     }
 }
@@ -569,5 +613,42 @@ mod tests {
         object.remove("window_overlap_frames");
         let back: ValidFitParams = serde_json::from_value(old).unwrap();
         assert_eq!((back.window_frames, back.window_overlap_frames), (25, 5));
+    }
+
+    #[test]
+    fn windows_run_fewer_iterations_in_fast_mode_unless_iterations_are_given() {
+        let fast = FitParams::default().check(Method::Mbnt).unwrap();
+        assert_eq!((fast.iterations, fast.iterations_per_window()), (1001, DEFAULT_FAST_WINDOW_ITERATIONS));
+        let window = fast.for_window();
+        assert_eq!(window.iterations, DEFAULT_FAST_WINDOW_ITERATIONS);
+        // The multi-body term reaches its full weight inside the window's budget.
+        assert_eq!(window.rigidity_warmup_iterations, DEFAULT_FAST_WINDOW_ITERATIONS / 2);
+        assert_eq!(window.odometry, OdometryMode::Off);
+        // Nothing else changes.
+        let restored = ValidFitParams {
+            odometry: fast.odometry,
+            iterations: fast.iterations,
+            rigidity_warmup_iterations: fast.rigidity_warmup_iterations,
+            ..window
+        };
+        assert_eq!(restored, fast);
+        // An explicit `iterations` holds for every window; an explicit `window_iterations` wins.
+        let given = FitParams { iterations: Some(300), ..Default::default() }.check(Method::Mbnt).unwrap();
+        assert_eq!(given.iterations_per_window(), 300);
+        assert_eq!(given.for_window().rigidity_warmup_iterations, 150);
+        let both = FitParams { iterations: Some(300), window_iterations: Some(40), ..Default::default() };
+        assert_eq!(both.check(Method::Mbnt).unwrap().for_window().iterations, 40);
+        // Faithful mode and the pair methods keep their iterations.
+        let faithful = FitParams { mode: Some(Mode::Faithful), ..Default::default() }.check(Method::Mbnt).unwrap();
+        assert_eq!(faithful.iterations_per_window(), 1001);
+        assert_eq!(faithful.for_window().rigidity_warmup_iterations, 0);
+        assert_eq!(FitParams::default().check(Method::Nsfp).unwrap().iterations_per_window(), 1000);
+        let e = FitParams { window_iterations: Some(0), ..Default::default() }.check(Method::Mbnt).unwrap_err();
+        assert_eq!(e.name, "window_iterations");
+        // A record written before the field existed ran `iterations` per window.
+        let mut old = serde_json::to_value(&fast).unwrap();
+        old.as_object_mut().unwrap().remove("window_iterations");
+        let back: ValidFitParams = serde_json::from_value(old).unwrap();
+        assert_eq!(back.iterations_per_window(), 1001);
     }
 }

@@ -27,6 +27,28 @@ impl Default for SimParams {
     }
 }
 
+/// Street (m) the default scene keeps ahead of the ego's last position when a log needs a
+/// longer street than the default: a 100-frame log of the default scene ends 29 m before the
+/// street's end.
+pub const STREET_AHEAD_OF_EGO_M: f64 = 30.0;
+
+impl SimParams {
+    /// The default scene for a log of `frames` frames: [`SimParams::default`] with the street
+    /// lengthened, only when the ego would otherwise drive off its end (beyond 100 frames at the
+    /// default speed), to [`STREET_AHEAD_OF_EGO_M`] past the ego's last position. Logs that fit
+    /// on the default street are exactly the default scene.
+    pub fn log(seed: u64, frames: usize) -> Self {
+        let mut params = Self { seed, frames, ..Self::default() };
+        let scene = &mut params.scene;
+        let duration_s = frames.saturating_sub(1) as f64 / params.frame_rate_hz;
+        let ego_end_m = scene.ego_start_m + scene.ego_speed_mps * duration_s;
+        if ego_end_m > scene.street_length_m {
+            scene.street_length_m = ego_end_m + STREET_AHEAD_OF_EGO_M;
+        }
+        params
+    }
+}
+
 /// A spinning multi-beam LiDAR: `beams` lasers at evenly spaced elevations, fired at every
 /// azimuth step of a full turn. Each sweep is modelled as instantaneous at its timestamp (no
 /// rolling shutter), so a frame is one rigid snapshot of the world.

@@ -350,3 +350,17 @@ fn a_range_of_frames_is_the_same_frames_with_the_same_truth() {
     assert!(seq.frames_range(3..3).is_err());
     assert!(seq.frames_range(20..seq.frames.len() + 1).is_err());
 }
+
+#[test]
+fn a_log_longer_than_the_street_gets_a_longer_street_and_shorter_logs_the_default_scene() {
+    for frames in [1, 25, 100] {
+        assert_eq!(SimParams::log(7, frames), SimParams { seed: 7, frames, ..SimParams::default() });
+    }
+    let default = SimParams { seed: 7, frames: 150, ..SimParams::default() };
+    assert!(default.validate().is_err(), "150 frames at 10 m/s leave the default 200 m street");
+    let long = SimParams::log(7, 150);
+    long.validate().unwrap();
+    // 72 m + 14.9 s x 10 m/s = 221 m, then the margin.
+    assert!((long.scene.street_length_m - (221.0 + super::params::STREET_AHEAD_OF_EGO_M)).abs() < 1e-9);
+    assert_eq!(SimParams { scene: default.scene.clone(), ..long.clone() }, default);
+}
