@@ -35,7 +35,7 @@ fn main() -> anyhow::Result<()> {
     let probe_rounds: Option<usize> = std::env::var("BODY_DIAG_PROBE").ok().map(|s| s.parse().unwrap_or(30));
     let show_path = std::env::var("BODY_DIAG_PATH").is_ok();
     for seed in seeds {
-        let sim = simulate(&SimParams { seed, frames, ..SimParams::default() })?;
+        let sim = simulate(&SimParams::log(seed, frames))?;
         let sequence = sim.to_fit_sequence();
         let started = std::time::Instant::now();
         let model = fit_sequence(&sequence, Method::Mbnt, &params, &mut |_| std::ops::ControlFlow::Continue(()))?;

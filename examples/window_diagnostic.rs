@@ -22,7 +22,7 @@ fn main() -> anyhow::Result<()> {
     let model = FittedModel::from_bytes(&std::fs::read(&args[3])?).map_err(anyhow::Error::msg)?;
     let from: usize = args[4].parse()?;
     let span: usize = args.get(5).map_or(Ok(24), |s| s.parse())?;
-    let sim = simulate(&SimParams { seed, frames, ..SimParams::default() })?;
+    let sim = simulate(&SimParams::log(seed, frames))?;
     let ts = &sim.timestamps_s;
     let to = (from + span).min(frames - 1);
     let starts: Vec<usize> = model.windows().iter().map(|(s, _)| *s).collect();

@@ -106,12 +106,21 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         None => None,
     };
     let sequence = Sequence { frames, timestamps_s, poses };
+    let iterations = if crate::fit::windows::is_windowed(&sequence, &params) {
+        format!(
+            "windows of {} frames overlapping by {} or more, {} iterations each",
+            params.window_frames,
+            params.window_overlap_frames,
+            params.iterations_per_window()
+        )
+    } else {
+        format!("{} iterations", params.iterations)
+    };
     eprintln!(
-        "fitting {} to {} frames ({} points) with {} iterations",
+        "fitting {} to {} frames ({} points) with {iterations}",
         args.method.name(),
         sequence.frames.len(),
         sequence.frames.iter().map(Vec::len).sum::<usize>(),
-        params.iterations
     );
     let interactive = std::io::stderr().is_terminal();
     let started = std::time::Instant::now();
