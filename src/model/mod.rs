@@ -82,6 +82,21 @@ const BODY_UNDERSIDE_M: f32 = crate::geometry::ground::GROUND_TOLERANCE_M;
 /// Query points are evaluated in chunks of this many, bounding memory for large queries.
 const QUERY_CHUNK: usize = 16_384;
 
+/// What a stitched model's window decided about a query point it hands over to the next window
+/// ([`FittedModel::positions_carried`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Carry {
+    /// On this body of the receiving window (the giving window's body of the same object).
+    Body(usize),
+    /// Still world where it was observed: it stays still, as a still point of a model of one fit
+    /// does at every time. (Decided again, a still point lying within reach of a body that passes
+    /// it at the hand-over frame would leave with that body.)
+    Still,
+    /// Nothing carried: the receiving window decides (the network's free points, and points on
+    /// a body whose object the receiving window lacks).
+    Open,
+}
+
 impl FittedModel {
     /// A model from a fitted trajectory network.
     pub(crate) fn trajectory(
@@ -273,22 +288,27 @@ impl FittedModel {
     }
 
     /// [`FittedModel::positions`] of a model of one fit (the points checked finite), where
-    /// `carried[i]`, when given and set, is the body point i is known to lie on (a stitched
-    /// model's previous window put it there): it follows that body whether or not it lies near the
-    /// body's points of `t_obs`. Also returns the body each point followed.
+    /// `carried[i]`, when given, is what a stitched model's previous window decided about point
+    /// i ([`Carry`]): on a body, it follows that body whether or not it lies near the body's
+    /// points of `t_obs`; still, it stays still. Also returns what this model decided about each
+    /// point, to carry into the next window.
     pub(super) fn positions_carried(
         &self,
         points: &[Point],
         t_obs: f64,
         times: &[f64],
-        carried: Option<&[Option<usize>]>,
-    ) -> Result<(Vec<Point>, Vec<Option<usize>>), QueryError> {
+        carried: Option<&[Carry]>,
+    ) -> Result<(Vec<Point>, Vec<Carry>), QueryError> {
         let u_obs = self.time_axis.to_frame_index(t_obs)?;
         let u_times = times.iter().map(|&t| self.time_axis.to_frame_index(t)).collect::<Result<Vec<_>, _>>()?;
         let mut out = vec![[0f32; 3]; points.len() * times.len()];
         if times.is_empty() {
-            return Ok((out, vec![None; points.len()]));
+            return Ok((out, vec![Carry::Open; points.len()]));
         }
+        let kept_still: Vec<bool> = match carried {
+            Some(carried) => carried.iter().map(|c| *c == Carry::Still).collect(),
+            None => vec![false; points.len()],
+        };
         // With poses, queries go into the fit's frame and answers come back into the sensor
         // frame of each queried time.
         let moved_in;
@@ -300,13 +320,14 @@ impl FittedModel {
             }
             None => points,
         };
+        let mut free = vec![false; points.len()];
         if self.still_world {
             // The still world: in the fit's (ego-motion-free) coordinates nothing moves; the
             // network answers its free points only.
             for (p, row) in points.iter().zip(out.chunks_mut(times.len())) {
                 row.fill(*p);
             }
-            self.apply_free_points(points, u_obs, &u_times, &mut out);
+            free = self.apply_free_points(points, u_obs, &u_times, &mut out, &kept_still);
         } else {
             self.network_positions_into(points, u_obs, &u_times, &mut out);
         }
@@ -315,7 +336,11 @@ impl FittedModel {
             if self.bodies.is_empty() { vec![None; points.len()] } else { self.body_members(points, u_obs) };
         if let Some(carried) = carried {
             for (owner, known) in owners.iter_mut().zip(carried) {
-                *owner = known.filter(|&n| n < self.bodies.len()).or(*owner);
+                *owner = match *known {
+                    Carry::Body(n) if n < self.bodies.len() => Some(n),
+                    Carry::Still => None,
+                    _ => *owner,
+                };
             }
         }
         self.apply_bodies(points, &owners, u_obs, &u_times, &mut out);
@@ -327,7 +352,16 @@ impl FittedModel {
                 }
             }
         }
-        Ok((out, owners))
+        let decided = owners
+            .iter()
+            .zip(&free)
+            .map(|(owner, &free)| match owner {
+                Some(n) => Carry::Body(*n),
+                None if self.still_world && self.tracks.is_empty() && !free => Carry::Still,
+                None => Carry::Open,
+            })
+            .collect();
+        Ok((out, decided))
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a tracked cluster
@@ -365,26 +399,37 @@ impl FittedModel {
 
     /// Overwrites the still answers (fit coordinates) of query points nearest to one of the
     /// network's free points of the frame nearest `u_obs` (within [`TRACK_MEMBER_RADIUS_M`]) with
-    /// the network's answer.
-    fn apply_free_points(&self, points: &[Point], u_obs: f64, u_times: &[f64], out: &mut [Point]) {
-        let Some(labelled) = self.free_points.get(u_obs.round() as usize) else { return };
+    /// the network's answer. Points marked in `skip` are left alone (still points a stitched model's previous window
+    /// handed over). Returns which points the network answered.
+    fn apply_free_points(
+        &self,
+        points: &[Point],
+        u_obs: f64,
+        u_times: &[f64],
+        out: &mut [Point],
+        skip: &[bool],
+    ) -> Vec<bool> {
+        let mut answered = vec![false; points.len()];
+        let Some(labelled) = self.free_points.get(u_obs.round() as usize) else { return answered };
         if !labelled.iter().any(|(_, free)| *free) {
-            return;
+            return answered;
         }
         let positions: Vec<Point> = labelled.iter().map(|(p, _)| *p).collect();
         let tree = KdTree::new(&positions);
         let max_d2 = TRACK_MEMBER_RADIUS_M * TRACK_MEMBER_RADIUS_M;
         let chosen: Vec<usize> = (0..points.len())
-            .filter(|&i| tree.nearest(&points[i]).is_some_and(|h| h.dist2 <= max_d2 && labelled[h.index].1))
+            .filter(|&i| !skip[i] && tree.nearest(&points[i]).is_some_and(|h| h.dist2 <= max_d2 && labelled[h.index].1))
             .collect();
         if chosen.is_empty() {
-            return;
+            return answered;
         }
         let query: Vec<Point> = chosen.iter().map(|&i| points[i]).collect();
         let answers = self.network_positions(&query, u_obs, u_times);
         for (n, &i) in chosen.iter().enumerate() {
             out[i * u_times.len()..][..u_times.len()].copy_from_slice(&answers[n * u_times.len()..][..u_times.len()]);
+            answered[i] = true;
         }
+        answered
     }
 
     /// Overwrites the answers (fit coordinates) of query points that lie on a moving body at

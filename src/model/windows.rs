@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use super::networks::Motion;
 use super::poses::pose_at;
-use super::{FitReport, FittedModel, MovingBody, QueryError, TRACK_MEMBER_RADIUS_M, TimeAxis};
+use super::{Carry, FitReport, FittedModel, MovingBody, QueryError, TRACK_MEMBER_RADIUS_M, TimeAxis};
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
@@ -261,18 +261,21 @@ pub(super) fn positions(
             &[window.local_time(axis, t_handoff)],
             current.carried.as_deref(),
         )?;
-        // The next window's part of each point's object, if it has one.
+        // The next window's part of each point's object, if it has one; still points stay still.
         let next = &windows[to];
-        let carried: Vec<Option<usize>> = owners
+        let carried: Vec<Carry> = owners
             .iter()
-            .map(|owner| {
-                let object = window.object_ids[(*owner)?];
-                next.object_ids.iter().position(|&o| o == object)
+            .map(|decided| match *decided {
+                Carry::Body(body) => {
+                    let object = window.object_ids[body];
+                    next.object_ids.iter().position(|&o| o == object).map_or(Carry::Open, Carry::Body)
+                }
+                other => other,
             })
             .collect();
         let sensor_to_log = model.frame_poses.as_ref().map(|poses| pose_at(poses, handoff as f64));
-        for (i, (owner, next_part)) in owners.iter().zip(&carried).enumerate() {
-            if let (Some(body), None, None) = (*owner, next_part, &orphans[i]) {
+        for (i, (decided, next_part)) in owners.iter().zip(&carried).enumerate() {
+            if let (Carry::Body(body), Carry::Open, None) = (*decided, next_part, &orphans[i]) {
                 let in_log = sensor_to_log.map_or(moved[i], |pose| pose.apply(&moved[i]));
                 let on_body = body_pose_beyond(window, body, window.local_time(axis, t_handoff)).inverse();
                 let at = on_body.apply(&to_log[from].inverse().apply(&in_log));
@@ -403,9 +406,9 @@ struct Entry {
     points: Vec<Point>,
     /// The log's time at which the window takes them over.
     t: f64,
-    /// Per point, the body of the window it arrives on (the previous window's body of the same
-    /// object); `None` for the window the points were observed in.
-    carried: Option<Vec<Option<usize>>>,
+    /// Per point, what the previous window decided about it ([`Carry`]); `None` for the window
+    /// the points were observed in.
+    carried: Option<Vec<Carry>>,
 }
 
 /// [`FittedModel::frame_object_ids`] of a stitched model: the window owning frame `k` labels its
@@ -651,6 +654,30 @@ mod tests {
         for (got, want) in back.iter().zip([[4.2, 0.1, 0.0], [0.2, 0.1, 0.0]]) {
             assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{back:?}");
         }
+    }
+
+    #[test]
+    fn a_still_point_stays_still_when_a_body_of_the_next_window_passes_it_at_the_hand_over() {
+        // Two 4-frame windows over 6 frames (starts 0 and 2, hand-over at frame 3): the car is a
+        // body of the second window only, at x = 1.2 at log frame 3 (its local frame 1). A point
+        // of the still world observed at frame 0 where the car will pass at the hand-over stays
+        // still at every time, as in a model of one fit; the car's own point follows the car.
+        let mut first = scene_model();
+        first.bodies.clear();
+        let stitched = FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 6),
+            Some(vec![Rigid::identity(); 6]),
+            FitReport::default(),
+            vec![(0, first), (2, scene_model())],
+        )
+        .unwrap();
+        let still = [1.2, 0.1, 0.0];
+        let at = stitched.positions(&[still], 0.0, &[3.0, 4.0, 5.0]).unwrap();
+        assert!(at.iter().all(|p| p.iter().zip(&still).all(|(g, w)| (g - w).abs() < 1e-4)), "{at:?}");
+        // Observed at the hand-over itself, the point is the second window's to decide: on the car.
+        let on_car = stitched.positions(&[still], 3.0, &[5.0]).unwrap();
+        assert!((on_car[0][0] - 3.2).abs() < 1e-4, "{on_car:?}");
     }
 
     #[test]
