@@ -570,6 +570,19 @@ mod tests {
     use super::*;
     use crate::model::tests::scene_model;
 
+    /// A 6-frame log with identity poses stitched from two 4-frame windows starting at frames 0
+    /// and 2 (hand-over at frame 3).
+    fn two_windows(first: FittedModel, second: FittedModel) -> FittedModel {
+        FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 6),
+            Some(vec![Rigid::identity(); 6]),
+            FitReport::default(),
+            vec![(0, first), (2, second)],
+        )
+        .unwrap()
+    }
+
     #[test]
     fn hand_overs_lie_in_the_middle_of_the_overlaps_and_own_every_time_once() {
         let window = |start: usize| Window { start, model: scene_model(), object_ids: vec![0] };
@@ -613,14 +626,7 @@ mod tests {
         let first = scene_model();
         let mut second = scene_model();
         second.bodies.clear();
-        let stitched = FittedModel::stitched(
-            Method::Mbnt,
-            TimeAxis::new(None, 6),
-            Some(vec![Rigid::identity(); 6]),
-            FitReport::default(),
-            vec![(0, first.clone()), (2, second.clone())],
-        )
-        .unwrap();
+        let stitched = two_windows(first.clone(), second.clone());
         // Past the hand-over the point follows the first window's car, 1 m per frame; a point
         // of the still world stays.
         let at = stitched.positions(&[[0.2, 0.1, 0.0], [10.0, 10.0, 0.0]], 0.0, &[2.0, 4.0, 5.0]).unwrap();
@@ -642,14 +648,7 @@ mod tests {
         let mut car = scene_model();
         car.bodies[0].poses.iter_mut().for_each(|p| p.translation[0] += 2.0);
         car.bodies[0].members.iter_mut().flatten().for_each(|p| p[0] += 2.0);
-        let stitched = FittedModel::stitched(
-            Method::Mbnt,
-            TimeAxis::new(None, 6),
-            Some(vec![Rigid::identity(); 6]),
-            FitReport::default(),
-            vec![(0, empty), (2, car)],
-        )
-        .unwrap();
+        let stitched = two_windows(empty, car);
         let back = stitched.positions(&[[5.2, 0.1, 0.0]], 5.0, &[4.0, 0.0]).unwrap();
         for (got, want) in back.iter().zip([[4.2, 0.1, 0.0], [0.2, 0.1, 0.0]]) {
             assert!(got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-4), "{back:?}");
@@ -664,14 +663,7 @@ mod tests {
         // still at every time, as in a model of one fit; the car's own point follows the car.
         let mut first = scene_model();
         first.bodies.clear();
-        let stitched = FittedModel::stitched(
-            Method::Mbnt,
-            TimeAxis::new(None, 6),
-            Some(vec![Rigid::identity(); 6]),
-            FitReport::default(),
-            vec![(0, first), (2, scene_model())],
-        )
-        .unwrap();
+        let stitched = two_windows(first, scene_model());
         let still = [1.2, 0.1, 0.0];
         let at = stitched.positions(&[still], 0.0, &[3.0, 4.0, 5.0]).unwrap();
         assert!(at.iter().all(|p| p.iter().zip(&still).all(|(g, w)| (g - w).abs() < 1e-4)), "{at:?}");
@@ -696,14 +688,7 @@ mod tests {
         other.id = 1;
         other.members = other.members.iter().map(|m| m.iter().map(|p| [p[0], p[1] + 30.0, p[2]]).collect()).collect();
         second.bodies.push(other);
-        let stitched = FittedModel::stitched(
-            Method::Mbnt,
-            TimeAxis::new(None, 6),
-            Some(vec![Rigid::identity(); 6]),
-            FitReport::default(),
-            vec![(0, first), (2, second)],
-        )
-        .unwrap();
+        let stitched = two_windows(first, second);
         let ids: Vec<u32> = stitched.bodies().iter().map(|b| b.id).collect();
         assert_eq!(ids, vec![0, 1], "the car is one object, the far body another");
         let car = &stitched.bodies()[0];

@@ -170,8 +170,10 @@ def _npy_bytes(frame: Any, k: int) -> bytes:
     return buf.getvalue()
 
 
-class Sequence:
-    """An uploaded sequence. :attr:`view` is its JSON (``Sequence`` in openapi.yaml)."""
+class _Resource:
+    """A resource of the service (``_PREFIX/{id}``) and its latest JSON view."""
+
+    _PREFIX = ""
 
     def __init__(self, client: Client, view: Dict[str, Any]):
         self._client = client
@@ -179,8 +181,22 @@ class Sequence:
 
     @property
     def id(self) -> str:
-        """The sequence's UUID."""
+        """The resource's UUID."""
         return self.view["id"]
+
+    def _path(self, tail: str = "") -> str:
+        return f"{self._PREFIX}/{self.id}{tail}"
+
+    def refresh(self):
+        """Re-read the resource from the service."""
+        self.view = self._client._json("GET", self._path())
+        return self
+
+
+class Sequence(_Resource):
+    """An uploaded sequence. :attr:`view` is its JSON (``Sequence`` in openapi.yaml)."""
+
+    _PREFIX = "/v1/sequences"
 
     @property
     def name(self) -> Optional[str]:
@@ -212,34 +228,22 @@ class Sequence:
         """Whether poses were uploaded."""
         return self.view["has_poses"]
 
-    def refresh(self) -> "Sequence":
-        """Re-read the sequence from the service."""
-        self.view = self._client._json("GET", f"/v1/sequences/{self.id}")
-        return self
-
     def fit(self, method: str = "mbnt", params: Optional[Dict[str, Any]] = None) -> "Job":
         """Queue a fit of this sequence; see :meth:`Client.fit`."""
         return self._client.fit(self.id, method, params)
 
     def delete(self) -> None:
         """Delete the sequence, its finished jobs and their models (409 while a job runs)."""
-        self._client._request("DELETE", f"/v1/sequences/{self.id}").close()
+        self._client._request("DELETE", self._path()).close()
 
     def __repr__(self) -> str:
         return f"Sequence(id={self.id!r}, frames={self.frames}, name={self.name!r})"
 
 
-class Job:
+class Job(_Resource):
     """A fit job. :attr:`view` is its latest JSON (``Job`` in openapi.yaml)."""
 
-    def __init__(self, client: Client, view: Dict[str, Any]):
-        self._client = client
-        self.view = view
-
-    @property
-    def id(self) -> str:
-        """The job's UUID."""
-        return self.view["id"]
+    _PREFIX = "/v1/jobs"
 
     @property
     def sequence_id(self) -> str:
@@ -260,14 +264,6 @@ class Job:
     def error(self) -> Optional[str]:
         """Why the job failed, or ``None``."""
         return self.view.get("error")
-
-    def _path(self, tail: str = "") -> str:
-        return f"/v1/jobs/{self.id}{tail}"
-
-    def refresh(self) -> "Job":
-        """Re-read the job from the service."""
-        self.view = self._client._json("GET", self._path())
-        return self
 
     def cancel(self) -> Dict[str, Any]:
         """Cancel the job and return its view after the request (409 once succeeded or failed)."""
