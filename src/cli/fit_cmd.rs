@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 
-use crate::fit::{FitParams, Method, Mode, Sequence, fit_sequence};
-use crate::geometry::Point;
+use super::frames::{FileFrames, peak_rss_bytes};
+use crate::fit::windows::{NoFinishedWindows, fit_log};
+use crate::fit::{FitParams, Method, Mode};
 use crate::io::npz::NpzWriter;
-use crate::io::read_points_file;
 
 /// Arguments of `mbnt fit`.
 #[derive(Debug, clap::Args)]
@@ -85,11 +85,6 @@ pub fn read_timestamps(path: &Path) -> anyhow::Result<Vec<f64>> {
 /// Runs `mbnt fit`.
 pub fn run(args: FitArgs) -> anyhow::Result<()> {
     let paths = frame_paths(&args.frames)?;
-    let mut frames: Vec<Vec<Point>> = Vec::with_capacity(paths.len());
-    for path in &paths {
-        let points = read_points_file(path).with_context(|| format!("reading frame {}", path.display()))?;
-        frames.push(points);
-    }
     let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
     let mut params: FitParams = match &args.params {
         Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
@@ -101,11 +96,15 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     let params = params.check(args.method)?;
     let poses = match &args.poses {
         Some(path) => Some(
-            super::odometry_cmd::read_poses(path, frames.len())?.iter().map(crate::odometry::to_row_major).collect(),
+            super::odometry_cmd::read_poses(path, paths.len())?.iter().map(crate::odometry::to_row_major).collect(),
         ),
         None => None,
     };
-    let sequence = Sequence { frames, timestamps_s, poses };
+    // Frames are read when the fit needs them (a long log one window at a time) and again, one
+    // at a time, for the labels: memory is bounded by a window, not by the log. Reading each
+    // once first fails on a bad file before any fitting.
+    let sequence = FileFrames::new(paths, timestamps_s, poses)?;
+    let point_counts = sequence.check()?;
     let iterations = if crate::fit::windows::is_windowed(&sequence, &params) {
         format!(
             "windows of {} frames overlapping by {} or more, {} iterations each",
@@ -119,8 +118,8 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     eprintln!(
         "fitting {} to {} frames ({} points) with {iterations}",
         args.method.name(),
-        sequence.frames.len(),
-        sequence.frames.iter().map(Vec::len).sum::<usize>(),
+        point_counts.len(),
+        point_counts.iter().sum::<usize>(),
     );
     let interactive = std::io::stderr().is_terminal();
     let started = std::time::Instant::now();
@@ -154,7 +153,7 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         }
         ControlFlow::Continue(())
     };
-    let model = fit_sequence(&sequence, args.method, &params, &mut on_progress)?;
+    let model = fit_log(&sequence, args.method, &params, &mut NoFinishedWindows, &mut on_progress)?;
     if interactive {
         eprintln!();
     }
@@ -183,16 +182,21 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         "none" => Vec::new(),
         other => bail!("--trajectories must be first, all or none, not {other:?}"),
     };
-    for k in traj_frames {
-        let positions = model.positions(&sequence.frames[k], times[k], &times)?;
-        npz.add_f32(&format!("traj_{k:03}"), &[sequence.frames[k].len(), times.len(), 3], positions.as_flattened())?;
-    }
-    for (k, flow) in model.scene_flow(&sequence.frames).iter().enumerate() {
-        npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
-    }
-    // The moving body (object id) of every point, -1 for none, as the service's labels.
-    for (k, ids) in model.object_ids(&sequence.frames).iter().enumerate() {
-        npz.add_i32(&format!("object_{k:03}"), &[ids.len()], ids)?;
+    // One frame at a time: its trajectories when asked, its scene flow to the next frame (none
+    // for the last), and the moving body (object id) of every point, -1 for none, as the
+    // service's labels.
+    for k in 0..axis.frames() {
+        let points = sequence.frame(k)?;
+        if traj_frames.contains(&k) {
+            let positions = model.positions(&points, times[k], &times)?;
+            npz.add_f32(&format!("traj_{k:03}"), &[points.len(), times.len(), 3], positions.as_flattened())?;
+        }
+        if k + 1 < axis.frames() {
+            let flow = model.frame_scene_flow(k, &points);
+            npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+        }
+        let ids = model.frame_object_ids(k, &points);
+        npz.add_i32(&format!("object_{k:03}"), &[ids.len()], &ids)?;
     }
     npz.add_f64("timestamps", &[times.len()], &times)?;
     npz.finish()?.flush()?;
@@ -201,6 +205,9 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         let bytes = model.to_bytes().context("the model is not saved")?;
         std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());
+    }
+    if let Some(peak) = peak_rss_bytes() {
+        eprintln!("peak memory {:.0} MB", peak as f64 / 1e6);
     }
     Ok(())
 }

@@ -3,6 +3,7 @@
 pub mod bench_cmd;
 pub mod eval_cmd;
 pub mod fit_cmd;
+pub mod frames;
 pub mod load_cmd;
 pub mod odometry_cmd;
 pub mod real_pair;

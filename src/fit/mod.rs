@@ -44,6 +44,61 @@ impl Sequence {
     }
 }
 
+/// A sequence whose frames are read when the fit needs them: a fit of a whole log reads one
+/// window's frames at a time, so that it holds a window's frames, not the log's
+/// ([`windows::fit_log`]). [`Sequence`] is the source whose frames are all in memory.
+pub trait FrameSource {
+    /// The sequence's frames.
+    fn frame_count(&self) -> usize;
+    /// Timestamps (s), one per frame, when known.
+    fn timestamps_s(&self) -> Option<&[f64]>;
+    /// Sensor-to-world poses (row-major 4 x 4), one per frame, when known.
+    fn poses(&self) -> Option<&[[f64; 16]]>;
+    /// Frames `range` (`range.end <= frame_count()`), in order, each in its own sensor frame.
+    fn read_frames(&self, range: std::ops::Range<usize>) -> Result<Vec<Vec<Point>>, FitError>;
+    /// The whole sequence, when its frames are all in memory already.
+    fn in_memory(&self) -> Option<&Sequence> {
+        None
+    }
+    /// Every frame: [`FrameSource::read_frames`] of them all, borrowed when they are in memory.
+    fn all_frames(&self) -> Result<std::borrow::Cow<'_, [Vec<Point>]>, FitError> {
+        match self.in_memory() {
+            Some(sequence) => Ok(std::borrow::Cow::Borrowed(&sequence.frames)),
+            None => self.read_frames(0..self.frame_count()).map(std::borrow::Cow::Owned),
+        }
+    }
+    /// Frames `range` with their timestamps and poses, as a sequence of their own.
+    fn part(&self, range: std::ops::Range<usize>) -> Result<Sequence, FitError> {
+        Ok(Sequence {
+            timestamps_s: self.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
+            poses: self.poses().map(|poses| poses[range.clone()].to_vec()),
+            frames: self.read_frames(range)?,
+        })
+    }
+}
+
+impl FrameSource for Sequence {
+    fn frame_count(&self) -> usize {
+        self.frames.len()
+    }
+
+    fn timestamps_s(&self) -> Option<&[f64]> {
+        self.timestamps_s.as_deref()
+    }
+
+    fn poses(&self) -> Option<&[[f64; 16]]> {
+        self.poses.as_deref()
+    }
+
+    fn read_frames(&self, range: std::ops::Range<usize>) -> Result<Vec<Vec<Point>>, FitError> {
+        Ok(self.frames[range].to_vec())
+    }
+
+    fn in_memory(&self) -> Option<&Sequence> {
+        Some(self)
+    }
+}
+
 /// Loss terms of one iteration (means over the reference frames used).
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LossTerms {
@@ -108,6 +163,9 @@ pub enum FitError {
         /// The offending loss value.
         loss: f64,
     },
+    /// The sequence's frames could not be read (a [`FrameSource`] reading them from a store).
+    #[error("could not read the sequence's frames: {0}")]
+    FrameRead(String),
     /// The progress callback asked to stop.
     #[error("cancelled at iteration {iteration}")]
     Cancelled {
@@ -131,7 +189,7 @@ pub fn fit_sequence(
     params: &ValidFitParams,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
-    windows::fit_sequence_resuming(sequence, method, params, &mut windows::NoFinishedWindows, on_progress)
+    windows::fit_log(sequence, method, params, &mut windows::NoFinishedWindows, on_progress)
 }
 
 /// One fit of every frame of `sequence` (a sequence of at most one window, or one window of a
@@ -358,16 +416,18 @@ pub struct FitCoordinates {
 /// In `auto` mode a sequence the odometry cannot register (e.g. every point within its minimum
 /// range) is fitted in sensor coordinates, as without odometry, with a warning; in `on` mode
 /// that is an error.
-pub fn fit_coordinates(sequence: &Sequence, params: &ValidFitParams) -> Result<FitCoordinates, FitError> {
+///
+/// Only the odometry reads the frames: with poses, none is read.
+pub fn fit_coordinates(sequence: &dyn FrameSource, params: &ValidFitParams) -> Result<FitCoordinates, FitError> {
     if !params.use_poses {
         return Ok(FitCoordinates::default());
     }
-    let estimate = match (params.odometry, &sequence.poses) {
+    let estimate = match (params.odometry, sequence.poses()) {
         (OdometryMode::On, _) | (OdometryMode::Auto, None) => {
             let odometry_params = crate::odometry::OdometryParams::default();
             match crate::odometry::estimate_poses(
-                &sequence.frames,
-                sequence.timestamps_s.as_deref(),
+                &sequence.all_frames()?,
+                sequence.timestamps_s(),
                 &odometry_params,
                 &mut |_, _| ControlFlow::Continue(()),
             ) {
@@ -381,7 +441,7 @@ pub fn fit_coordinates(sequence: &Sequence, params: &ValidFitParams) -> Result<F
         }
         _ => None,
     };
-    match estimate.as_deref().or(sequence.poses.as_deref()) {
+    match estimate.as_deref().or(sequence.poses()) {
         Some(poses) => {
             Ok(FitCoordinates { frame_poses: Some(poses_relative_to_first(poses)?), estimated_poses: estimate })
         }
@@ -416,17 +476,24 @@ pub fn poses_relative_to_first(poses: &[[f64; 16]]) -> Result<Vec<Rigid>, FitErr
 
 /// Checks what every method needs: at least two frames, none empty, all points finite.
 pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
-    let frames = sequence.frames.len();
-    if frames < 2 {
-        return Err(FitError::InvalidSequence(format!("needs at least 2 frames, got {frames}")));
-    }
+    validate_log(sequence)?;
     if let Some(k) = sequence.frames.iter().position(|f| f.is_empty()) {
         return Err(FitError::InvalidSequence(format!("frame {k} has no points")));
     }
     if let Some(k) = sequence.frames.iter().position(|f| f.iter().flatten().any(|c| !c.is_finite())) {
         return Err(FitError::InvalidSequence(format!("frame {k} has a non-finite coordinate")));
     }
-    if let Some(ts) = &sequence.timestamps_s {
+    Ok(())
+}
+
+/// What [`validate_sequence`] checks without reading the frames: their count, the timestamps
+/// and the poses (each window's fit checks its frames).
+pub fn validate_log(sequence: &dyn FrameSource) -> Result<(), FitError> {
+    let frames = sequence.frame_count();
+    if frames < 2 {
+        return Err(FitError::InvalidSequence(format!("needs at least 2 frames, got {frames}")));
+    }
+    if let Some(ts) = sequence.timestamps_s() {
         if ts.len() != frames {
             return Err(FitError::InvalidSequence(format!("{} timestamps for {frames} frames", ts.len())));
         }
@@ -434,7 +501,7 @@ pub fn validate_sequence(sequence: &Sequence) -> Result<(), FitError> {
             return Err(FitError::InvalidSequence("timestamps must be finite and strictly increasing".into()));
         }
     }
-    if let Some(poses) = &sequence.poses {
+    if let Some(poses) = sequence.poses() {
         if poses.len() != frames {
             return Err(FitError::InvalidSequence(format!("{} poses for {frames} frames", poses.len())));
         }

@@ -12,8 +12,9 @@
 //!   world and a still point stays still across a hand-over. Without poses each window works in
 //!   sensor coordinates, as the whole log would.
 //! - Windows are fitted one after the other; each is a unit of work with its own progress
-//!   ([`WindowProgress`]), and only its frames are prepared (memory bounded by a window, not by
-//!   the log). A cancel stops the window being fitted, as it stops any fit. Finished windows
+//!   ([`WindowProgress`]); only its frames are read from the [`FrameSource`] and prepared, and
+//!   they are dropped once it is fitted (memory bounded by a window, not by the log; the
+//!   odometry of a log without poses reads every frame once, before the windows). A cancel stops the window being fitted, as it stops any fit. Finished windows
 //!   can be kept ([`FinishedWindows`]: the service keeps them in its store), so that a fit run
 //!   again after a restart takes them instead of fitting them again; a window's fit depends
 //!   only on its frames and the parameters (seeded), so a kept window is the one it would fit.
@@ -24,7 +25,7 @@
 
 use std::ops::ControlFlow;
 
-use super::{FitError, Progress, Sequence, fit_coordinates, fit_single, validate_sequence};
+use super::{FitError, FrameSource, Progress, Sequence, fit_coordinates, fit_single, validate_log};
 use crate::model::FittedModel;
 use crate::model::params::{Method, ValidFitParams};
 
@@ -82,26 +83,31 @@ pub fn window_starts(frames: usize, window_frames: usize, overlap_frames: usize)
 }
 
 /// Whether `sequence` is fitted as windows with `params` (it has more frames than a window).
-pub fn is_windowed(sequence: &Sequence, params: &ValidFitParams) -> bool {
-    sequence.frames.len() > params.window_frames
+pub fn is_windowed(sequence: &dyn FrameSource, params: &ValidFitParams) -> bool {
+    sequence.frame_count() > params.window_frames
 }
 
-/// [`fit_sequence`](super::fit_sequence), taking the windows an earlier run of the same fit
-/// finished from `finished` and keeping there each window it finishes. A sequence of at most
-/// one window is one fit, as in `fit_sequence`; a longer one is fitted window by window and
-/// stitched (see the module's documentation). Progress then carries [`Progress::window`]; a
-/// `Break` from `on_progress` cancels the fit.
-pub fn fit_sequence_resuming(
-    sequence: &Sequence,
+/// [`fit_sequence`](super::fit_sequence) of a sequence whose frames are read when needed,
+/// taking the windows an earlier run of the same fit finished from `finished` and keeping
+/// there each window it finishes. A sequence of at most one window is one fit, as in
+/// `fit_sequence`; a longer one is fitted window by window and stitched (see the module's
+/// documentation), reading each window's frames when it is fitted (a window taken from
+/// `finished` reads none). Progress then carries [`Progress::window`]; a `Break` from
+/// `on_progress` cancels the fit.
+pub fn fit_log(
+    sequence: &dyn FrameSource,
     method: Method,
     params: &ValidFitParams,
     finished: &mut dyn FinishedWindows,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
     if !is_windowed(sequence, params) {
-        return fit_single(sequence, method, params, on_progress);
+        return match sequence.in_memory() {
+            Some(all) => fit_single(all, method, params, on_progress),
+            None => fit_single(&sequence.part(0..sequence.frame_count())?, method, params, on_progress),
+        };
     }
-    validate_sequence(sequence)?;
+    validate_log(sequence)?;
     let started = std::time::Instant::now();
     let coordinates = fit_coordinates(sequence, params)?;
     // Each window gets its slice of the log's poses and is told not to estimate its own: the
@@ -110,16 +116,11 @@ pub fn fit_sequence_resuming(
     let world: Option<Vec<[f64; 16]>> =
         coordinates.frame_poses.as_ref().map(|poses| poses.iter().map(|p| p.to_row_major()).collect());
     let window_params = params.for_window();
-    let frames = sequence.frames.len();
+    let frames = sequence.frame_count();
     let starts = window_starts(frames, params.window_frames, params.window_overlap_frames);
     let mut windows = Vec::with_capacity(starts.len());
     for (w, &start) in starts.iter().enumerate() {
         let range = start..start + params.window_frames;
-        let part = Sequence {
-            frames: sequence.frames[range.clone()].to_vec(),
-            timestamps_s: sequence.timestamps_s.as_ref().map(|ts| ts[range.clone()].to_vec()),
-            poses: world.as_ref().map(|poses| poses[range.clone()].to_vec()),
-        };
         let position = WindowProgress {
             window: w,
             windows_done: w,
@@ -147,6 +148,12 @@ pub fn fit_sequence_resuming(
             continue;
         }
         tracing::info!(window = w, windows = starts.len(), first_frame = start, "fitting a window");
+        // Read here, and dropped once the window is fitted: one window's frames at a time.
+        let part = Sequence {
+            frames: sequence.read_frames(range.clone())?,
+            timestamps_s: sequence.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
+            poses: world.as_ref().map(|poses| poses[range].to_vec()),
+        };
         let model = fit_single(&part, method, &window_params, &mut |p: &Progress| {
             on_progress(&Progress { window: Some(position), ..p.clone() })
         })?;
@@ -159,7 +166,8 @@ pub fn fit_sequence_resuming(
         fit_seconds: started.elapsed().as_secs_f64(),
         ..Default::default()
     };
-    FittedModel::stitched(method, sequence.time_axis(), coordinates.frame_poses, report, windows)
+    let time_axis = crate::model::TimeAxis::new(sequence.timestamps_s().map(<[f64]>::to_vec), frames);
+    FittedModel::stitched(method, time_axis, coordinates.frame_poses, report, windows)
         .map_err(|e| FitError::InvalidSequence(format!("stitching the windows: {e}")))
 }
 
@@ -381,6 +389,68 @@ pub(crate) mod tests {
         // slide: 0.098 and 0.101 m).
         assert!(windowed_m < single_m + 0.1, "windowed {windowed_m} m, one fit {single_m} m");
         assert!(windowed_m < 0.3, "windowed {windowed_m} m");
+    }
+
+    /// A sequence read window by window, recording every read.
+    struct CountingSource {
+        sequence: Sequence,
+        reads: std::cell::RefCell<Vec<std::ops::Range<usize>>>,
+    }
+
+    impl FrameSource for CountingSource {
+        fn frame_count(&self) -> usize {
+            self.sequence.frames.len()
+        }
+        fn timestamps_s(&self) -> Option<&[f64]> {
+            self.sequence.timestamps_s.as_deref()
+        }
+        fn poses(&self) -> Option<&[[f64; 16]]> {
+            self.sequence.poses.as_deref()
+        }
+        fn read_frames(&self, range: std::ops::Range<usize>) -> Result<Vec<Vec<Point>>, FitError> {
+            self.reads.borrow_mut().push(range.clone());
+            Ok(self.sequence.frames[range].to_vec())
+        }
+    }
+
+    /// Keeps every window in memory, for a second run to take.
+    #[derive(Default)]
+    struct KeptInMemory(std::collections::BTreeMap<usize, FittedModel>);
+
+    impl FinishedWindows for KeptInMemory {
+        fn take(&mut self, first_frame: usize, _frames: usize) -> Option<FittedModel> {
+            self.0.get(&first_frame).cloned()
+        }
+        fn keep(&mut self, first_frame: usize, _frames: usize, model: &FittedModel) {
+            self.0.insert(first_frame, model.clone());
+        }
+    }
+
+    #[test]
+    fn a_log_read_from_a_source_reads_one_window_at_a_time_and_a_kept_window_not_at_all() {
+        let sequence = small_log(5, 12).to_fit_sequence();
+        let params = quick_params(6, 2);
+        let source = CountingSource { sequence: sequence.clone(), reads: Default::default() };
+        let mut kept = KeptInMemory::default();
+        let model = fit_log(&source, Method::Mbnt, &params, &mut kept, &mut |_| ControlFlow::Continue(())).unwrap();
+        // Windows from frames 0, 3 and 6: each read once, when fitted, and nothing else (with poses
+        // the fit reads no frame to settle its coordinates).
+        assert_eq!(*source.reads.borrow(), vec![0..6, 3..9, 6..12]);
+        // The same model as from the frames in memory.
+        let in_memory = fit_sequence_with(&sequence, &params, &mut |_| ControlFlow::Continue(())).unwrap();
+        let still: Vec<Point> = sequence.frames[0].iter().take(200).copied().collect();
+        let times = [0.0, 0.55, 1.1];
+        let t0 = sequence.timestamps_s.as_ref().unwrap()[0];
+        assert_eq!(model.positions(&still, t0, &times).unwrap(), in_memory.positions(&still, t0, &times).unwrap());
+        // A second run takes every window kept by the first and reads no frame.
+        source.reads.borrow_mut().clear();
+        let again = fit_log(&source, Method::Mbnt, &params, &mut kept, &mut |_| ControlFlow::Continue(())).unwrap();
+        assert!(source.reads.borrow().is_empty(), "{:?}", source.reads.borrow());
+        assert_eq!(again.positions(&still, t0, &times).unwrap(), model.positions(&still, t0, &times).unwrap());
+        // Without poses the odometry reads every frame once, before the windows.
+        let raw = CountingSource { sequence: Sequence { poses: None, ..sequence }, reads: Default::default() };
+        fit_log(&raw, Method::Mbnt, &params, &mut NoFinishedWindows, &mut |_| ControlFlow::Continue(())).unwrap();
+        assert_eq!(*raw.reads.borrow(), vec![0..12, 0..6, 3..9, 6..12]);
     }
 
     #[test]

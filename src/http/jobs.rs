@@ -579,13 +579,9 @@ pub async fn labels(
         let record = store
             .get_sequence(job.sequence_id)?
             .ok_or_else(|| ApiError::Conflict("the job's sequence has been deleted".into()))?;
-        let frames = (0..record.frames())
-            .map(|k| store.read_frame(record.id, k))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| stored_read_error(&*store, job.id, "the sequence's frames", e))?;
-        let flows = model.scene_flow(&frames);
-        let object_ids = model.object_ids(&frames);
-        drop(frames);
+        let read_frame = |k: usize| {
+            store.read_frame(record.id, k).map_err(|e| stored_read_error(&*store, job.id, "the sequence's frames", e))
+        };
         let path = tmp_dir.join(format!("{}.labels", Uuid::new_v4().simple()));
         let file = std::fs::OpenOptions::new()
             .read(true)
@@ -596,15 +592,28 @@ pub async fn labels(
         // Unlinked at once: the open handle keeps the data until the response is sent.
         let _ = std::fs::remove_file(&path);
         let w = std::io::BufWriter::new(file);
+        let write_error = |e: crate::io::WriteError| ApiError::Internal(anyhow::anyhow!("writing labels: {e}"));
+        let frames = record.frames();
         let written = if as_npz {
+            // One frame at a time: a long log's labels never hold more than a frame.
+            let mut labels = crate::io::labels::LabelsNpzWriter::new(w);
+            for k in 0..frames {
+                let points = read_frame(k)?;
+                let flow = (k + 1 < frames).then(|| model.frame_scene_flow(k, &points));
+                labels.frame(flow.as_deref(), &model.frame_object_ids(k, &points)).map_err(write_error)?;
+            }
             let axis = model.time_axis();
             let timestamps: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
-            crate::io::labels::write_labels_npz(w, &flows, &timestamps, &object_ids)
+            labels.finish(&timestamps)
         } else {
+            let frames = (0..frames).map(read_frame).collect::<Result<Vec<_>, _>>()?;
+            let flows = model.scene_flow(&frames);
+            let object_ids = model.object_ids(&frames);
+            drop(frames);
             write_av2(w, &flows, &object_ids)
         };
         let mut file = written
-            .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing labels: {e}")))?
+            .map_err(write_error)?
             .into_inner()
             .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing labels: {}", e.error())))?;
         std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(0))

@@ -7,29 +7,48 @@ use super::WriteError;
 use super::npz::NpzWriter;
 use crate::geometry::Point;
 
-/// Writes flows and timestamps as an `.npz`: arrays `flow_000`, `flow_001`, ... (float32,
-/// shape (N_k, 3), metres, frame k's sensor coordinates, point order of frame k) and
-/// `timestamps` (float64, shape (T,), seconds), each as given (`timestamps_s` is typically one
-/// per frame of the sequence, so one more than the pair-wise flows). Names have at least three
-/// digits, more when there are over 1000 flows.
-///
-/// `object_ids` (one array per frame, possibly none at all) become `object_000`, ... (int32,
-/// shape (N_k,)): the moving body each point of frame k lies on, -1 for none.
-pub fn write_labels_npz<W: Write + Seek>(
-    w: W,
-    flows: &[Vec<Point>],
-    timestamps_s: &[f64],
-    object_ids: &[Vec<i32>],
-) -> Result<W, WriteError> {
-    let mut npz = NpzWriter::new(w);
-    for (k, flow) in flows.iter().enumerate() {
-        npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+/// Writes labels as an `.npz`, one frame at a time (so that a long log's labels never hold more
+/// than a frame): arrays `flow_000`, `flow_001`, ... (float32, shape (N_k, 3), metres, frame k's
+/// sensor coordinates, point order of frame k; none for the last frame, which has no next),
+/// `object_000`, ... (int32, shape (N_k,): the moving body each point of frame k lies on, -1 for
+/// none) and `timestamps` (float64, shape (T,), seconds). Names have at least three digits,
+/// more beyond 1000 frames. Call [`LabelsNpzWriter::frame`] for k = 0, 1, ..., then
+/// [`LabelsNpzWriter::finish`].
+pub struct LabelsNpzWriter<W: Write + Seek> {
+    npz: NpzWriter<W>,
+    frames: usize,
+}
+
+impl<W: Write + Seek> LabelsNpzWriter<W> {
+    /// A writer of labels into `w`.
+    pub fn new(w: W) -> Self {
+        Self { npz: NpzWriter::new(w), frames: 0 }
     }
-    for (k, ids) in object_ids.iter().enumerate() {
-        npz.add_i32(&format!("object_{k:03}"), &[ids.len()], ids)?;
+
+    /// Writes the next frame's labels: its flow to the next frame (`None` for the last frame,
+    /// which has none) and the moving body of each of its points.
+    pub fn frame(&mut self, flow: Option<&[Point]>, object_ids: &[i32]) -> Result<(), WriteError> {
+        let k = self.frames;
+        if let Some(flow) = flow {
+            if flow.len() != object_ids.len() {
+                return Err(WriteError::Inconsistent(format!(
+                    "frame {k}: {} object ids for {} flows",
+                    object_ids.len(),
+                    flow.len()
+                )));
+            }
+            self.npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
+        }
+        self.npz.add_i32(&format!("object_{k:03}"), &[object_ids.len()], object_ids)?;
+        self.frames += 1;
+        Ok(())
     }
-    npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
-    npz.finish()
+
+    /// Writes the timestamps (s, one per frame) and closes the archive.
+    pub fn finish(mut self, timestamps_s: &[f64]) -> Result<W, WriteError> {
+        self.npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
+        self.npz.finish()
+    }
 }
 
 /// Writes one Feather v2 (uncompressed Arrow IPC file) per frame into a zip: `000000.feather`,

@@ -837,13 +837,17 @@ fn python_zipfile_and_literal_eval_read_the_npz() {
 // ---------- labels ----------
 
 #[test]
-fn labels_npz_holds_one_flow_per_pair_and_the_timestamps() {
-    let flows = vec![sample_points(), vec![], vec![[0.5, -0.5, 0.25]]];
+fn labels_npz_holds_one_flow_per_pair_the_object_ids_of_every_frame_and_the_timestamps() {
+    let flows = [sample_points(), vec![], vec![[0.5, -0.5, 0.25]]];
     let times = [0.0, 0.1, 0.2, 0.3];
-    let ids = vec![vec![-1, 0, 0, -1, 3], vec![], vec![2], vec![-1, -1]];
-    let bytes = labels::write_labels_npz(Cursor::new(Vec::new()), &flows, &times, &ids).unwrap().into_inner();
-    let entries = unzip(&bytes);
-    let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
+    let ids = [vec![-1, 0, 0, -1, 3], vec![], vec![2], vec![-1, -1]];
+    let mut w = labels::LabelsNpzWriter::new(Cursor::new(Vec::new()));
+    for (k, frame_ids) in ids.iter().enumerate() {
+        w.frame(flows.get(k).map(Vec::as_slice), frame_ids).unwrap();
+    }
+    let bytes = w.finish(&times).unwrap().into_inner();
+    let entries: std::collections::BTreeMap<String, Vec<u8>> = unzip(&bytes).into_iter().collect();
+    let names: Vec<&str> = entries.keys().map(String::as_str).collect();
     assert_eq!(
         names,
         [
@@ -858,16 +862,24 @@ fn labels_npz_holds_one_flow_per_pair_and_the_timestamps() {
         ]
     );
     for (k, frame_ids) in ids.iter().enumerate() {
-        let arr = npy::read_npy(&entries[3 + k].1).unwrap();
+        let arr = npy::read_npy(&entries[&format!("object_{k:03}.npy")]).unwrap();
         assert_eq!(arr, NpyArray { shape: vec![frame_ids.len()], data: NpyData::I32(frame_ids.clone()) });
     }
     for (k, flow) in flows.iter().enumerate() {
-        let arr = npy::read_npy(&entries[k].1).unwrap();
+        let bytes = &entries[&format!("flow_{k:03}.npy")];
+        let arr = npy::read_npy(bytes).unwrap();
         assert_eq!(arr, NpyArray { shape: vec![flow.len(), 3], data: NpyData::F32(flow.as_flattened().to_vec()) });
         // A flow file is a valid point file as well.
-        assert_eq!(&read_points(&entries[k].1, None).unwrap(), flow);
+        assert_eq!(&read_points(bytes, None).unwrap(), flow);
     }
-    assert_eq!(npy::read_npy(&entries[7].1).unwrap().data, NpyData::F64(times.to_vec()));
+    assert_eq!(npy::read_npy(&entries["timestamps.npy"]).unwrap().data, NpyData::F64(times.to_vec()));
+}
+
+#[test]
+fn labels_npz_refuses_object_ids_that_do_not_match_the_flow() {
+    let mut w = labels::LabelsNpzWriter::new(Cursor::new(Vec::new()));
+    let err = w.frame(Some(&sample_points()), &[-1]).unwrap_err();
+    assert!(err.to_string().contains("frame 0"), "{err}");
 }
 
 #[cfg(feature = "av2")]

@@ -17,8 +17,8 @@ use std::time::Duration;
 use tokio::sync::watch;
 use uuid::Uuid;
 
-use crate::fit::windows::{FinishedWindows, fit_sequence_resuming};
-use crate::fit::{FitError, Method, Progress, Sequence, ValidFitParams, fit_sequence};
+use crate::fit::windows::{FinishedWindows, fit_log};
+use crate::fit::{FitError, FrameSource, Method, Progress, Sequence, ValidFitParams, fit_sequence};
 use crate::model::FittedModel;
 use crate::store::{CancelOutcome, JobProgress, JobRecord, JobStatus, Store, StoreError, now_ms};
 
@@ -37,19 +37,23 @@ pub trait Fitter: Send + Sync + 'static {
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError>;
 
-    /// [`Fitter::fit`] of a job that may have run before: a sequence fitted as windows takes
-    /// the windows an earlier run finished from `finished` and keeps there each one it
-    /// finishes. The default fits every window again.
+    /// [`Fitter::fit`] of a job that may have run before, whose frames are read when needed:
+    /// a sequence fitted as windows takes the windows an earlier run finished from `finished`
+    /// and keeps there each one it finishes. The default reads every frame and fits every
+    /// window again.
     fn fit_resuming(
         &self,
-        sequence: &Sequence,
+        sequence: &dyn FrameSource,
         method: Method,
         params: &ValidFitParams,
         finished: &mut dyn FinishedWindows,
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError> {
         let _ = finished;
-        self.fit(sequence, method, params, on_progress)
+        match sequence.in_memory() {
+            Some(all) => self.fit(all, method, params, on_progress),
+            None => self.fit(&sequence.part(0..sequence.frame_count())?, method, params, on_progress),
+        }
     }
 }
 
@@ -70,13 +74,13 @@ impl Fitter for CoreFitter {
 
     fn fit_resuming(
         &self,
-        sequence: &Sequence,
+        sequence: &dyn FrameSource,
         method: Method,
         params: &ValidFitParams,
         finished: &mut dyn FinishedWindows,
         on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
     ) -> Result<FittedModel, FitError> {
-        fit_sequence_resuming(sequence, method, params, finished, on_progress)
+        fit_log(sequence, method, params, finished, on_progress)
     }
 }
 

@@ -300,7 +300,7 @@ impl Fitter for InterruptedOnce {
 
     fn fit_resuming(
         &self,
-        sequence: &Sequence,
+        sequence: &dyn crate::fit::FrameSource,
         method: Method,
         params: &ValidFitParams,
         finished: &mut dyn crate::fit::windows::FinishedWindows,

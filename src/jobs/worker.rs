@@ -12,7 +12,8 @@ use anyhow::Context;
 
 use super::{Fitter, JobQueue};
 use crate::fit::windows::FinishedWindows;
-use crate::fit::{FitError, Progress, Sequence};
+use crate::fit::{FitError, FrameSource, Progress};
+use crate::geometry::Point;
 use crate::model::FittedModel;
 use crate::store::{JobOutcome, JobProgress, JobRecord, StoreError};
 
@@ -77,7 +78,7 @@ impl Worker {
         job.progress = JobProgress { iterations: job.params.iterations, ..JobProgress::default() };
         store.update_progress(job.id, &job.progress)?;
         self.queue.publish(&job);
-        let sequence = match load_sequence(&*store, &job) {
+        let sequence = match StoredFrames::open(&*store, &job) {
             Ok(s) => s,
             Err(e) => {
                 tracing::error!(error = %e, "could not load the job's sequence");
@@ -235,13 +236,43 @@ impl FinishedWindows for StoredWindows<'_> {
     }
 }
 
-/// Reads a job's sequence from the store.
-fn load_sequence(store: &dyn crate::store::Store, job: &JobRecord) -> Result<Sequence, StoreError> {
-    let record = store
-        .get_sequence(job.sequence_id)?
-        .ok_or_else(|| StoreError::Missing(format!("sequence {}", job.sequence_id)))?;
-    let frames = (0..record.frames()).map(|k| store.read_frame(record.id, k)).collect::<Result<Vec<_>, _>>()?;
-    Ok(Sequence { frames, timestamps_s: record.timestamps_s, poses: record.poses })
+/// A job's sequence in the store, whose frames the fit reads when it needs them (a whole log
+/// one window at a time).
+struct StoredFrames<'a> {
+    store: &'a dyn crate::store::Store,
+    record: crate::store::SequenceRecord,
+}
+
+impl<'a> StoredFrames<'a> {
+    /// The job's sequence; its frames are not read yet.
+    fn open(store: &'a dyn crate::store::Store, job: &JobRecord) -> Result<Self, StoreError> {
+        let record = store
+            .get_sequence(job.sequence_id)?
+            .ok_or_else(|| StoreError::Missing(format!("sequence {}", job.sequence_id)))?;
+        Ok(Self { store, record })
+    }
+}
+
+impl FrameSource for StoredFrames<'_> {
+    fn frame_count(&self) -> usize {
+        self.record.frames()
+    }
+
+    fn timestamps_s(&self) -> Option<&[f64]> {
+        self.record.timestamps_s.as_deref()
+    }
+
+    fn poses(&self) -> Option<&[[f64; 16]]> {
+        self.record.poses.as_deref()
+    }
+
+    fn read_frames(&self, range: std::ops::Range<usize>) -> Result<Vec<Vec<Point>>, FitError> {
+        range
+            .map(|k| {
+                self.store.read_frame(self.record.id, k).map_err(|e| FitError::FrameRead(format!("frame {k}: {e}")))
+            })
+            .collect()
+    }
 }
 
 /// A fixed number of worker threads, so that at most that many fits run at once.

@@ -488,8 +488,9 @@ impl FittedModel {
         frames.iter().enumerate().map(|(k, points)| self.frame_object_ids(k, points)).collect()
     }
 
-    /// [`FittedModel::object_ids`] of frame `k`'s `points` (sensor coordinates of sweep k).
-    fn frame_object_ids(&self, k: usize, points: &[Point]) -> Vec<i32> {
+    /// [`FittedModel::object_ids`] of frame `k`'s `points` (sensor coordinates of sweep k): a
+    /// long log's labels are written one frame at a time.
+    pub fn frame_object_ids(&self, k: usize, points: &[Point]) -> Vec<i32> {
         if self.bodies.is_empty() || k >= self.time_axis.frames() {
             return vec![-1; points.len()];
         }
@@ -510,14 +511,16 @@ impl FittedModel {
     /// point of `frames[k]`, for k in 0..T-1.
     pub fn scene_flow(&self, frames: &[Vec<Point>]) -> Vec<Vec<Point>> {
         let t = self.time_axis.frames();
-        (0..t.saturating_sub(1))
-            .map(|k| {
-                let from = self.time_axis.frame_time(k);
-                let to = self.time_axis.frame_time(k + 1);
-                let moved = self.positions(&frames[k], from, &[to]).expect("frame times are in range");
-                frames[k].iter().zip(&moved).map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]).collect()
-            })
-            .collect()
+        (0..t.saturating_sub(1)).map(|k| self.frame_scene_flow(k, &frames[k])).collect()
+    }
+
+    /// [`FittedModel::scene_flow`] of frame `k`'s `points` (`k + 1` a frame of the model): a long
+    /// log's labels are written one frame at a time.
+    pub fn frame_scene_flow(&self, k: usize, points: &[Point]) -> Vec<Point> {
+        let from = self.time_axis.frame_time(k);
+        let to = self.time_axis.frame_time(k + 1);
+        let moved = self.positions(points, from, &[to]).expect("frame times are in range");
+        points.iter().zip(&moved).map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]).collect()
     }
 }
 
