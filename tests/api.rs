@@ -409,6 +409,41 @@ async fn bodies_over_the_configured_limit_are_413_whether_sized_or_streamed() {
     assert_eq!(status, 413);
 }
 
+/// Sends `head` (request line and headers), waits, then `body_bytes` bytes of body, and reads
+/// the whole answer, over a raw connection: what a client uploading a large file sees.
+async fn raw_exchange(base: &str, head: &str, body_bytes: usize) -> std::io::Result<String> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(base.trim_start_matches("http://")).await?;
+    stream.write_all(head.as_bytes()).await?;
+    // The server may answer from the headers alone; the body follows as a slow client's would.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for chunk in vec![b' '; body_bytes].chunks(64 * 1024) {
+        stream.write_all(chunk).await?;
+    }
+    let mut answer = Vec::new();
+    stream.read_to_end(&mut answer).await?;
+    Ok(String::from_utf8_lossy(&answer).into_owned())
+}
+
+#[tokio::test]
+async fn a_client_still_sending_an_oversized_body_reads_the_413_instead_of_a_reset() {
+    let s = TestServer::start_with(Options {
+        limits: Limits { max_body_bytes: 2_000, max_json_bytes: 1_000, ..Limits::default() },
+        ..Options::default()
+    })
+    .await;
+    // Over the upload limit by its Content-Length, and over a job route's JSON limit while read.
+    for (path, length) in [("/v1/sequences", 4 << 20), ("/v1/jobs", 2 << 20)] {
+        let head = format!(
+            "POST {path} HTTP/1.1\r\nhost: test\r\ncontent-type: application/json\r\n\
+             content-length: {length}\r\nconnection: close\r\n\r\n"
+        );
+        let answer = raw_exchange(&s.base, &head, length).await.unwrap_or_else(|e| panic!("{path}: {e}"));
+        assert!(answer.starts_with("HTTP/1.1 413"), "{path}: {answer}");
+        assert!(answer.contains("urn:mbnt:problem:body-too-large"), "{path}: {answer}");
+    }
+}
+
 #[tokio::test]
 async fn bad_job_requests_name_the_parameter() {
     let s = TestServer::start_with(Options {

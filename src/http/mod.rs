@@ -6,6 +6,7 @@
 //! the workers and binds the listener; [`Service::shutdown`] stops accepting, ends progress
 //! streams, lets requests finish and stops the workers (their jobs go back to the queue).
 
+mod drain;
 pub mod error;
 mod jobs;
 pub mod metrics;
@@ -297,6 +298,7 @@ pub fn router(state: AppState) -> Router {
         .fallback(fallback)
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::limit::RequestBodyLimitLayer::new(limit))
+        .layer(middleware::from_fn(drain::drain_unread_body))
         .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
         .layer(tower_http::catch_panic::CatchPanicLayer::new())
         .layer(middleware::from_fn(error::problem_json))
