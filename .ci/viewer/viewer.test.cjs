@@ -161,3 +161,22 @@ test('the loss curve shows every recorded iteration', async () => {
   assert.equal(await page.evaluate(() => window.mbntViewer.boxes), objects.length);
   assert.deepEqual(consoleErrors, []);
 });
+
+test('a running job shows its progress and loss live, and its end', async () => {
+  const sequenceId = job.sequence_id;
+  const running = await api('/v1/jobs', {
+    method: 'POST',
+    headers: { 'Content-Type': 'application/json' },
+    body: JSON.stringify({ sequence_id: sequenceId, method: 'mbnt', params: { iterations: 50 } }),
+  });
+  await page.goto(`${url}/?job=${running.id}`);
+  // Loss records arrive through the job's event stream while it fits.
+  await page.waitForFunction(() => window.mbntViewer.lossRecords >= 2, null, { timeout: 60_000 });
+  const live = await api(`/v1/jobs/${running.id}`);
+  assert.notEqual(live.status, 'succeeded', 'the fit ended before the page saw it run: give it more iterations');
+  assert.match(await page.textContent('#job-summary'), /running · \d+\/50 it · loss/);
+  await api(`/v1/jobs/${running.id}/cancel`, { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: '{}' });
+  await page.waitForFunction(() => /cancelled/.test(document.getElementById('status').textContent), null, { timeout: 30_000 });
+  assert.equal(await page.evaluate(() => window.mbntViewer.ready), false);
+  assert.deepEqual(consoleErrors, []);
+});

@@ -482,7 +482,7 @@
       target: [quantile(xs, 0.5), quantile(ys, 0.5), quantile(zs, 0.5)],
       yaw: -Math.PI / 2, // looking along +x, the sensor's forward
       pitch: 0.85,
-      distance: 1.1 * span,
+      distance: 0.85 * span,
     };
   }
 
