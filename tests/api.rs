@@ -50,6 +50,38 @@ async fn the_open_routes_answer_without_a_token_and_serve_the_committed_document
 }
 
 #[tokio::test]
+async fn the_viewer_page_and_its_files_are_served_without_a_token() {
+    let s = TestServer::start_with(Options { token: Some("secret".into()), ..Options::default() }).await;
+    for asset in mbnt::http::viewer::ASSETS {
+        let response = s.client.get(s.url(asset.path)).send().await.unwrap();
+        assert_eq!(response.status(), 200, "{}", asset.path);
+        assert_eq!(response.headers()["content-type"], asset.content_type, "{}", asset.path);
+        assert!(response.headers()["content-security-policy"].to_str().unwrap().contains("script-src 'self'"));
+        assert_eq!(response.text().await.unwrap(), asset.body, "{}", asset.path);
+    }
+    // `/?job=ID` is the same page (the script reads the id); it loads its script and style.
+    let response = s.client.get(s.url("/?job=3f1c0a52-0000-4000-8000-000000000000")).send().await.unwrap();
+    assert_eq!(response.status(), 200);
+    assert!(response.headers()["content-type"].to_str().unwrap().starts_with("text/html"));
+    let page = response.text().await.unwrap();
+    for needle in ["<canvas id=\"scene\"", "<canvas id=\"loss\"", "/viewer/viewer.js", "/viewer/viewer.css"] {
+        assert!(page.contains(needle), "the page lacks {needle}");
+    }
+    // Beside the files, the same strict answers as everywhere: problems for unknown files and
+    // other methods.
+    let response = s.client.get(s.url("/viewer/nothing.js")).send().await.unwrap();
+    assert_eq!(
+        (response.status().as_u16(), response.headers()["content-type"].to_str().unwrap()),
+        (404, "application/problem+json")
+    );
+    let response = s.client.post(s.url("/")).body("x").send().await.unwrap();
+    assert_eq!(
+        (response.status().as_u16(), response.headers()["content-type"].to_str().unwrap()),
+        (405, "application/problem+json")
+    );
+}
+
+#[tokio::test]
 async fn v1_routes_need_the_right_bearer_token_when_one_is_configured() {
     let mut s = TestServer::start_with(Options { token: Some("secret".into()), ..Options::default() }).await;
     let (status, body) = s.get("/v1/sequences", "/v1/sequences").await;
@@ -122,6 +154,23 @@ async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
     assert_eq!(done["params"]["iterations"], 5);
     let (_, jobs) = s.get("/v1/jobs", &format!("/v1/jobs?status=succeeded&sequence_id={id}")).await;
     assert_eq!(jobs["jobs"].as_array().unwrap().len(), 1);
+
+    // The loss curve: one record per iteration, in order, every term finite.
+    let (status, curve) = s.get("/v1/jobs/{id}/losses", &format!("/v1/jobs/{job}/losses")).await;
+    assert_eq!(status, 200, "{curve}");
+    assert_eq!((curve["job_id"].as_str(), curve["iterations"].as_u64()), (Some(job.as_str()), Some(5)));
+    let records = curve["losses"].as_array().unwrap();
+    let iterations: Vec<u64> = records.iter().map(|r| r["iteration"].as_u64().unwrap()).collect();
+    assert_eq!(iterations, [1, 2, 3, 4, 5]);
+    for r in records {
+        for term in ["chamfer", "cycle", "rigidity", "total"] {
+            assert!(r["loss"][term].as_f64().is_some_and(f64::is_finite), "{r}");
+        }
+    }
+    // The first iteration validates, and the checkpoint's record carries its validation loss.
+    assert!(records[0]["validation"]["total"].is_f64(), "{curve}");
+    let best = records.iter().find(|r| r["iteration"] == curve["best_iteration"]).expect("the checkpoint's record");
+    assert_eq!(best["validation"]["total"], curve["best_validation_loss"], "{curve}");
 
     // Frame form: the frame's points at its own time are the points themselves.
     let (status, answer) = s
@@ -532,6 +581,8 @@ async fn queries_need_a_succeeded_job_and_valid_points_and_times() {
         let (status, _) = s.get("/v1/jobs/{id}/labels", &format!("/v1/jobs/{job}/labels")).await;
         assert_eq!(status, 409);
         let (status, p) = s.get("/v1/jobs/{id}/poses", &format!("/v1/jobs/{job}/poses")).await;
+        assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:conflict")), "{p}");
+        let (status, p) = s.get("/v1/jobs/{id}/losses", &format!("/v1/jobs/{job}/losses")).await;
         assert_eq!((status, p["type"].as_str()), (409, Some("urn:mbnt:problem:conflict")), "{p}");
     }
     // Cancel both: the queued one at once, the running one at its next iteration.

@@ -13,8 +13,8 @@ pub mod tracks;
 pub mod visibility;
 pub mod windows;
 
-pub use crate::model::PhaseTimes;
 pub use crate::model::params::{FitParams, FitParamsError, MAX_ITERATIONS, Method, Mode, OdometryMode, ValidFitParams};
+pub use crate::model::{LossTerms, PhaseTimes};
 pub use windows::WindowProgress;
 
 use std::ops::ControlFlow;
@@ -97,19 +97,6 @@ impl FrameSource for Sequence {
     fn in_memory(&self) -> Option<&Sequence> {
         Some(self)
     }
-}
-
-/// Loss terms of one iteration (means over the reference frames used).
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct LossTerms {
-    /// Truncated Chamfer terms (m^2).
-    pub chamfer: f64,
-    /// Cycle-consistency term (m^2).
-    pub cycle: f64,
-    /// Multi-body rigidity term (-ln score, dimensionless).
-    pub rigidity: f64,
-    /// Weighted total that the optimiser minimises.
-    pub total: f64,
 }
 
 /// What the fitting loop reports after each iteration.
@@ -210,12 +197,15 @@ pub(crate) fn fit_single(
         FitReport { frames: frame_reports, params: Some(params.clone()), estimated_poses, ..FitReport::default() };
     // The last iteration's progress, repeated while the rigid tracks are built.
     let mut last = None::<Progress>;
+    let mut losses = crate::model::LossCurve::default();
     let mut on_iteration = |p: &Progress| {
+        losses.push(p.iteration, p.loss, p.validation_loss);
         last = Some(p.clone());
         on_progress(p)
     };
     let model = if method.is_trajectory() {
         let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), &mut on_iteration)?;
+        report.losses = losses.into_records();
         report.iterations = fit.iterations;
         report.best_iteration = Some(fit.best_iteration);
         report.best_validation_loss = Some(fit.best_validation_loss);
@@ -224,6 +214,7 @@ pub(crate) fn fit_single(
         FittedModel::trajectory(method, sequence.time_axis(), report, fit.mlp, frame_poses)
     } else {
         let fit = nsfp::fit_pairs(&frames, params, method.uses_rigidity(), &mut on_iteration)?;
+        report.losses = losses.into_records();
         report.iterations = fit.iterations_per_pair.iter().sum();
         report.iterations_per_pair = fit.iterations_per_pair;
         report.fit_seconds = started.elapsed().as_secs_f64();

@@ -230,6 +230,11 @@ pub(crate) mod tests {
         assert_eq!(model.time_axis().frames(), 12);
         assert_eq!(model.report().frames.len(), 12);
         assert_eq!(model.report().iterations, 9, "3 iterations in each of 3 windows");
+        // The loss curve lists window after window, each counting its iterations from 1.
+        let curve: Vec<(Option<usize>, usize)> =
+            model.report().losses.iter().map(|r| (r.window, r.iteration)).collect();
+        let expected: Vec<(Option<usize>, usize)> = (0..3).flat_map(|w| (1..=3).map(move |i| (Some(w), i))).collect();
+        assert_eq!(curve, expected);
 
         // Still points of frame 0 (not ground, on no moving object) observed at t = 0 stay where
         // they are in the world at every frame time and between frames, in every window.

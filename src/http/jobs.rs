@@ -22,7 +22,7 @@ use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
 use crate::jobs::JobQueue;
-use crate::model::QueryError;
+use crate::model::{LossRecord, QueryError};
 use crate::store::{CancelOutcome, JobFilter, JobProgress, JobRecord, JobStatus, rfc3339};
 
 /// A job as the API shows it.
@@ -502,6 +502,36 @@ pub async fn objects(State(state): State<AppState>, UrlPath(id): UrlPath<String>
                 },
             })
             .collect(),
+    };
+    Ok(Json(view).into_response())
+}
+
+/// The answer of `GET /v1/jobs/{id}/losses`.
+#[derive(Debug, Serialize)]
+struct LossesView<'a> {
+    job_id: String,
+    /// Optimiser iterations run (summed over pairs or windows).
+    iterations: usize,
+    /// The iteration, numbered as in `losses`, whose validation pass selected the checkpoint.
+    best_iteration: Option<usize>,
+    best_validation_loss: Option<f64>,
+    losses: &'a [LossRecord],
+}
+
+/// `GET /v1/jobs/{id}/losses`: the loss curve of a succeeded fit, as its report recorded it
+/// (a running fit's latest loss is in its progress and events).
+pub async fn losses(State(state): State<AppState>, UrlPath(id): UrlPath<String>) -> Result<Response, ApiError> {
+    let job = succeeded_job(&state, &id, "loss curves").await?;
+    let model = state.model(job.id).await?;
+    let report = model.report();
+    let view = LossesView {
+        job_id: job.id.to_string(),
+        iterations: report.iterations,
+        // The report counts the loop's iterations from 0; the curve counts them done, from 1
+        // (the validation of loop iteration k is measured before its update, in record k + 1).
+        best_iteration: report.best_iteration.map(|k| k + 1),
+        best_validation_loss: report.best_validation_loss,
+        losses: &report.losses,
     };
     Ok(Json(view).into_response())
 }

@@ -1,6 +1,6 @@
 //! The HTTP service: axum routes over the store and the job queue, problem+json errors,
-//! bearer-token auth on `/v1`, body limits, server-sent progress, Prometheus metrics and the
-//! OpenAPI document.
+//! bearer-token auth on `/v1`, body limits, server-sent progress, Prometheus metrics, the
+//! OpenAPI document and the viewer page ([`viewer`]).
 //!
 //! [`Service::start`] opens the store, re-queues jobs a dead process left running, starts
 //! the workers and binds the listener; [`Service::shutdown`] stops accepting, ends progress
@@ -12,6 +12,7 @@ mod jobs;
 pub mod metrics;
 mod sequences;
 pub mod strict;
+pub mod viewer;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -125,6 +126,7 @@ pub const ROUTES: &[Route] = &[
     Route { method: "GET", path: "/v1/jobs/{id}/labels", handler: || get(jobs::labels) },
     Route { method: "GET", path: "/v1/jobs/{id}/objects", handler: || get(jobs::objects) },
     Route { method: "GET", path: "/v1/jobs/{id}/poses", handler: || get(jobs::poses) },
+    Route { method: "GET", path: "/v1/jobs/{id}/losses", handler: || get(jobs::losses) },
 ];
 
 /// Shared state of the handlers.
@@ -280,8 +282,8 @@ async fn fallback() -> (axum::http::StatusCode, &'static str) {
     (axum::http::StatusCode::NOT_FOUND, "no such route")
 }
 
-/// The router over `state`: every route of [`ROUTES`], `/v1` behind the token, the body
-/// limit, request metrics and problem+json for every error.
+/// The router over `state`: every route of [`ROUTES`], `/v1` behind the token, the viewer's
+/// files ([`viewer::ASSETS`]), the body limit, request metrics and problem+json for every error.
 pub fn router(state: AppState) -> Router {
     let mut open = Router::new();
     let mut v1 = Router::new();
@@ -295,6 +297,7 @@ pub fn router(state: AppState) -> Router {
     let v1 = v1.route_layer(middleware::from_fn_with_state(state.clone(), require_token));
     let limit = usize::try_from(state.limits().max_body_bytes).unwrap_or(usize::MAX);
     open.merge(v1)
+        .merge(viewer::routes())
         .fallback(fallback)
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::limit::RequestBodyLimitLayer::new(limit))

@@ -31,7 +31,7 @@ mod windows;
 
 pub use check::NonFiniteModel;
 pub use objects::{MovingBody, RigidTrack};
-pub use report::{FitReport, FrameReport, PhaseTimes};
+pub use report::{FitReport, FrameReport, LossCurve, LossRecord, LossTerms, PhaseTimes};
 pub use time::{MAX_EXTRAPOLATION_S, QueryError, TimeAxis};
 
 use crate::geometry::Point;

@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use super::networks::Motion;
 use super::poses::pose_at;
-use super::{Carry, FitReport, FittedModel, MovingBody, QueryError, TRACK_MEMBER_RADIUS_M, TimeAxis};
+use super::{Carry, FitReport, FittedModel, LossRecord, MovingBody, QueryError, TRACK_MEMBER_RADIUS_M, TimeAxis};
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
@@ -164,8 +164,9 @@ impl FittedModel {
                 w.model.report.frames.get(k - w.start).copied().unwrap_or_default()
             })
             .collect();
-        for w in &windows {
+        for (k, w) in windows.iter().enumerate() {
             let r = &w.model.report;
+            report.losses.extend(r.losses.iter().map(|l| LossRecord { window: Some(k), ..*l }));
             report.iterations += r.iterations;
             report.rigid_tracks += r.rigid_tracks;
             report.rigid_tracks_seconds += r.rigid_tracks_seconds;
