@@ -13,7 +13,7 @@ use arrow_array::{ArrayRef, Float64Array, Int32Array, Int64Array, RecordBatch, U
 use arrow_schema::{DataType, Field, Schema};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
-use super::feather::{Values, read_columns};
+use super::feather::{Values, read_columns, write_batch};
 use super::{ReadError, WriteError};
 use crate::geometry::Point;
 
@@ -210,7 +210,7 @@ pub fn write_sweep<W: Write>(w: W, points: &[Point]) -> Result<W, WriteError> {
         Arc::new(UInt8Array::from(vec![0; n])),
         Arc::new(Int32Array::from(vec![0; n])),
     ];
-    write_lz4_feather(w, RecordBatch::try_new(schema, columns)?)
+    write_batch(w, &RecordBatch::try_new(schema, columns)?, true)
 }
 
 /// Writes a `city_SE3_egovehicle.feather`: one row per timestamp (ns) with the ego-to-city pose
@@ -236,15 +236,5 @@ pub fn write_city_poses<W: Write>(w: W, timestamps_ns: &[i64], poses: &[[f64; 16
         fields.push(Field::new(*name, DataType::Float64, false));
         columns.push(Arc::new(Float64Array::from(v)));
     }
-    write_lz4_feather(w, RecordBatch::try_new(Arc::new(Schema::new(fields)), columns)?)
-}
-
-/// One record batch as an LZ4-compressed Arrow IPC file, as AV2's files are.
-fn write_lz4_feather<W: Write>(w: W, batch: RecordBatch) -> Result<W, WriteError> {
-    let options = arrow_ipc::writer::IpcWriteOptions::default()
-        .try_with_compression(Some(arrow_ipc::CompressionType::LZ4_FRAME))?;
-    let mut writer = arrow_ipc::writer::FileWriter::try_new_with_options(w, &batch.schema(), options)?;
-    writer.write(&batch)?;
-    writer.finish()?;
-    Ok(writer.into_inner()?)
+    write_batch(w, &RecordBatch::try_new(Arc::new(Schema::new(fields)), columns)?, true)
 }

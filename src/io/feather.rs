@@ -2,7 +2,7 @@
 //! record batches: Argoverse 2 sweeps ([`read_feather`]: columns `x`, `y`, `z`, float16 in AV2,
 //! float32 and float64 read too, among any other flat columns; AV2 adds `intensity`,
 //! `laser_number`, `offset_ns`, which are dropped) and any numeric columns ([`read_columns`],
-//! e.g. AV2's `city_SE3_egovehicle.feather` poses).
+//! e.g. AV2's `city_SE3_egovehicle.feather` poses); [`write_batch`] writes one.
 //!
 //! The file's footer, record-batch messages and buffer table are checked here, before arrow-ipc
 //! decodes anything: arrow-ipc trusts the lengths a file declares (it allocates a block's body
@@ -410,4 +410,19 @@ fn check_batch(b: usize, batch: &arrow_ipc::RecordBatch<'_>, columns: usize, bod
         decompressed += declared as u64;
     }
     Ok(decompressed)
+}
+
+/// Writes `batch` as a Feather v2 file (one record batch), its buffers LZ4-compressed when `lz4`
+/// (as Argoverse 2's files) or plain.
+pub fn write_batch<W: std::io::Write>(
+    w: W,
+    batch: &arrow_array::RecordBatch,
+    lz4: bool,
+) -> Result<W, super::WriteError> {
+    let compression = lz4.then_some(CompressionType::LZ4_FRAME);
+    let options = arrow_ipc::writer::IpcWriteOptions::default().try_with_compression(compression)?;
+    let mut writer = arrow_ipc::writer::FileWriter::try_new_with_options(w, &batch.schema(), options)?;
+    writer.write(batch)?;
+    writer.finish()?;
+    Ok(writer.into_inner()?)
 }

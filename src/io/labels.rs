@@ -112,8 +112,7 @@ pub fn write_flow_feather<W: Write>(
     use arrow_array::{ArrayRef, BooleanArray, Float32Array, Int32Array, RecordBatch};
     use arrow_schema::{DataType, Field, Schema};
 
-    let n = flow.len();
-    check_point_lengths(n, valid, object_ids)?;
+    let (valid, ids) = filled_masks(flow.len(), valid, object_ids)?;
     let schema = Arc::new(Schema::new(vec![
         Field::new("flow_tx_m", DataType::Float32, false),
         Field::new("flow_ty_m", DataType::Float32, false),
@@ -122,22 +121,9 @@ pub fn write_flow_feather<W: Write>(
         Field::new("object_id", DataType::Int32, false),
     ]));
     let column = |axis: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(flow.iter().map(|f| f[axis]))) };
-    let is_valid: BooleanArray = match valid {
-        Some(v) => v.iter().map(|&b| Some(b)).collect(),
-        None => std::iter::repeat_n(Some(true), n).collect(),
-    };
-    let object_id = match object_ids {
-        Some(ids) => Int32Array::from(ids.to_vec()),
-        None => Int32Array::from(vec![-1; n]),
-    };
-    let batch = RecordBatch::try_new(
-        schema.clone(),
-        vec![column(0), column(1), column(2), Arc::new(is_valid) as ArrayRef, Arc::new(object_id) as ArrayRef],
-    )?;
-    let mut writer = arrow_ipc::writer::FileWriter::try_new(w, &schema)?;
-    writer.write(&batch)?;
-    writer.finish()?;
-    Ok(writer.into_inner()?)
+    let columns: Vec<ArrayRef> =
+        vec![column(0), column(1), column(2), Arc::new(BooleanArray::from(valid)), Arc::new(Int32Array::from(ids))];
+    super::feather::write_batch(w, &RecordBatch::try_new(schema, columns)?, false)
 }
 
 /// Writes the labels of one frame as an `.npz`: `flow` (float32, (N, 3), metres, the layout of
@@ -150,9 +136,7 @@ pub fn write_flow_npz<W: Write + Seek>(
     object_ids: Option<&[i32]>,
 ) -> Result<W, WriteError> {
     let n = flow.len();
-    check_point_lengths(n, valid, object_ids)?;
-    let valid = valid.map_or_else(|| vec![true; n], <[bool]>::to_vec);
-    let ids = object_ids.map_or_else(|| vec![-1; n], <[i32]>::to_vec);
+    let (valid, ids) = filled_masks(n, valid, object_ids)?;
     let mut npz = NpzWriter::new(w);
     npz.add_f32("flow", &[n, 3], flow.as_flattened())?;
     npz.add_bool("is_valid", &[n], &valid)?;
@@ -160,8 +144,13 @@ pub fn write_flow_npz<W: Write + Seek>(
     npz.finish()
 }
 
-/// A per-point mask or id array of a frame of `n` points must have `n` entries.
-fn check_point_lengths(n: usize, valid: Option<&[bool]>, object_ids: Option<&[i32]>) -> Result<(), WriteError> {
+/// A frame's validity mask and object ids, with their defaults (all valid, no object) for
+/// `None`. Errors: a given array whose length is not the frame's `n` points.
+fn filled_masks(
+    n: usize,
+    valid: Option<&[bool]>,
+    object_ids: Option<&[i32]>,
+) -> Result<(Vec<bool>, Vec<i32>), WriteError> {
     for (what, len) in
         [("validity mask entries", valid.map(<[bool]>::len)), ("object ids", object_ids.map(<[i32]>::len))]
     {
@@ -169,5 +158,5 @@ fn check_point_lengths(n: usize, valid: Option<&[bool]>, object_ids: Option<&[i3
             return Err(WriteError::Inconsistent(format!("{len} {what} for {n} points")));
         }
     }
-    Ok(())
+    Ok((valid.map_or_else(|| vec![true; n], <[bool]>::to_vec), object_ids.map_or_else(|| vec![-1; n], <[i32]>::to_vec)))
 }
