@@ -1,7 +1,14 @@
 #!/usr/bin/env python3
 """Writes the hand-made seed files of fuzz/corpus/<target>/ (valid and broken examples of each
 format). The committed corpus is these seeds after the long runs and `cargo fuzz cmin`; run this
-again only to start a corpus afresh: python3 fuzz/make_seeds.py"""
+again only to start a corpus afresh: python3 fuzz/make_seeds.py
+
+corpus/feather/ (and read_points/sweep_lz4_f16, read_points/feather_named_garbage) is not made
+here: Python has no Arrow writer on this machine. Those seeds were written by mbnt's own writers:
+io::av2::write_sweep of P below (LZ4, float16), the same cut by 7 bytes, with P[2].y = NaN, of no
+points; io::av2::write_city_poses of two identity poses (no x, y, z); io::labels::
+write_flow_feather of P (uncompressed float32); for read_points, selector byte 0 (no name) before
+the sweep and 5 ("a.feather") before b"not arrow"."""
 import os, struct
 root = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'corpus')
 P = [(0.0, 0.0, 0.0), (1.5, -2.25, 0.0), (-3.0, 4.0, 0.0), (10.125, 0.5, 1.75)]

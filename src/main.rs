@@ -1,7 +1,7 @@
 //! The `mbnt` binary: a thin dispatcher over the library's command front ends.
 
 use clap::{Parser, Subcommand};
-use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, load_cmd, odometry_cmd, serve_cmd, simulate_cmd};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, label_cmd, load_cmd, odometry_cmd, serve_cmd, simulate_cmd};
 
 /// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
 #[derive(Debug, Parser)]
@@ -17,6 +17,8 @@ enum Command {
     Serve(serve_cmd::ServeArgs),
     /// Fit a method to frame files and write trajectories and scene-flow labels (.npz).
     Fit(fit_cmd::FitArgs),
+    /// Label a log in a dataset's layout (Argoverse 2, KITTI): one scene-flow file per frame.
+    Label(label_cmd::LabelArgs),
     /// Write a synthetic LiDAR sequence with exact ground truth.
     Simulate(simulate_cmd::SimulateArgs),
     /// Compare methods and baselines on simulated sequences (or directories with ground truth).
@@ -39,6 +41,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Serve(args) => serve_cmd::run(args),
         Command::Fit(args) => fit_cmd::run(args),
+        Command::Label(args) => label_cmd::run(args),
         Command::Simulate(args) => simulate_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
         Command::Bench(args) => bench_cmd::run(args),

@@ -8,8 +8,17 @@ use mbnt::io::{detect_format, read_points};
 use mbnt_fuzz::assert_cloud;
 
 /// File names an upload may carry: none, each format's extension, a misleading and an odd one.
-const HINTS: [Option<&str>; 8] =
-    [None, Some("a.ply"), Some("a.pcd"), Some("a.bin"), Some("a.npy"), Some("frame.BIN"), Some("a.txt"), Some(".ply")];
+const HINTS: [Option<&str>; 9] = [
+    None,
+    Some("a.ply"),
+    Some("a.pcd"),
+    Some("a.bin"),
+    Some("a.npy"),
+    Some("a.feather"),
+    Some("frame.BIN"),
+    Some("a.txt"),
+    Some(".ply"),
+];
 
 fuzz_target!(|input: &[u8]| {
     let Some((&selector, data)) = input.split_first() else { return };

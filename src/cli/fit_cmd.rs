@@ -1,15 +1,18 @@
 //! `mbnt fit`: fit a method to frame files offline and write trajectories and labels.
 
-use std::io::{IsTerminal, Write};
-use std::ops::ControlFlow;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 
 use super::frames::{FileFrames, peak_rss_bytes};
+use super::progress;
 use crate::fit::windows::{NoFinishedWindows, fit_log};
-use crate::fit::{FitParams, Method, Mode};
+use crate::fit::{FitParams, FrameSource, Method, Mode, ValidFitParams};
+use crate::geometry::Point;
 use crate::io::npz::NpzWriter;
+use crate::io::read_points_file;
+use crate::model::FittedModel;
 
 /// Arguments of `mbnt fit`.
 #[derive(Debug, clap::Args)]
@@ -25,6 +28,25 @@ pub struct FitArgs {
     /// model (still world + moving bodies) applies.
     #[arg(long)]
     pub poses: Option<PathBuf>,
+    /// The method and its parameters.
+    #[command(flatten)]
+    pub fit: FitOptions,
+    /// Output `.npz`: `traj_KKK` (N_k x T x 3 positions of frame k's points at every frame
+    /// time) for the frames chosen by --trajectories, `flow_KKK` scene-flow labels, `object_KKK`
+    /// (the moving body of each point of frame k, -1 for none), `timestamps`.
+    #[arg(long, default_value = "mbnt-fit.npz")]
+    pub out: PathBuf,
+    /// Frames whose dense trajectories are written: `first` (frame 0), `all`, or `none`.
+    #[arg(long, default_value = "first")]
+    pub trajectories: String,
+    /// Also write the fitted model (loadable by the service's format) to this file.
+    #[arg(long)]
+    pub model_out: Option<PathBuf>,
+}
+
+/// The method and parameter options shared by `mbnt fit` and `mbnt label`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FitOptions {
     /// The method.
     #[arg(long, default_value = "mbnt")]
     pub method: Method,
@@ -40,21 +62,24 @@ pub struct FitArgs {
     /// Shorthand for the `mode` parameter: `fast` (default) or `faithful` (method.md exactly).
     #[arg(long)]
     pub mode: Option<Mode>,
-    /// Output `.npz`: `traj_KKK` (N_k x T x 3 positions of frame k's points at every frame
-    /// time) for the frames chosen by --trajectories, `flow_KKK` scene-flow labels, `object_KKK`
-    /// (the moving body of each point of frame k, -1 for none), `timestamps`.
-    #[arg(long, default_value = "mbnt-fit.npz")]
-    pub out: PathBuf,
-    /// Frames whose dense trajectories are written: `first` (frame 0), `all`, or `none`.
-    #[arg(long, default_value = "first")]
-    pub trajectories: String,
-    /// Also write the fitted model (loadable by the service's format) to this file.
-    #[arg(long)]
-    pub model_out: Option<PathBuf>,
+}
+
+impl FitOptions {
+    /// The parameters: `--params` with the shorthands over it, checked for the method.
+    pub fn params(&self) -> anyhow::Result<ValidFitParams> {
+        let mut params: FitParams = match &self.params {
+            Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
+            None => FitParams::default(),
+        };
+        params.iterations = self.iterations.or(params.iterations);
+        params.seed = self.seed.or(params.seed);
+        params.mode = self.mode.or(params.mode);
+        Ok(params.check(self.method)?)
+    }
 }
 
 /// Point-cloud file endings taken from a directory.
-const FRAME_EXTENSIONS: [&str; 5] = ["bin", "ply", "pcd", "npy", "kitti"];
+const FRAME_EXTENSIONS: [&str; 6] = ["bin", "ply", "pcd", "npy", "kitti", "feather"];
 
 pub(crate) fn frame_paths(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
     if let [dir] = inputs
@@ -82,30 +107,27 @@ pub fn read_timestamps(path: &Path) -> anyhow::Result<Vec<f64>> {
         .collect()
 }
 
-/// Runs `mbnt fit`.
-pub fn run(args: FitArgs) -> anyhow::Result<()> {
-    let paths = frame_paths(&args.frames)?;
-    let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
-    let mut params: FitParams = match &args.params {
-        Some(json) => serde_json::from_str(json).context("--params is not a valid parameter object")?,
-        None => FitParams::default(),
-    };
-    params.iterations = args.iterations.or(params.iterations);
-    params.seed = args.seed.or(params.seed);
-    params.mode = args.mode.or(params.mode);
-    let params = params.check(args.method)?;
-    let poses = match &args.poses {
-        Some(path) => Some(
-            super::odometry_cmd::read_poses(path, paths.len())?.iter().map(crate::odometry::to_row_major).collect(),
-        ),
-        None => None,
-    };
-    // Frames are read when the fit needs them (a long log one window at a time) and again, one
-    // at a time, for the labels: memory is bounded by a window, not by the log. Reading each
-    // once first fails on a bad file before any fitting.
-    let sequence = FileFrames::new(paths, timestamps_s, poses)?;
-    let point_counts = sequence.check()?;
-    let iterations = if crate::fit::windows::is_windowed(&sequence, &params) {
+/// Reads frame files in order, showing a bar.
+pub fn read_frames(paths: &[PathBuf]) -> anyhow::Result<Vec<Vec<Point>>> {
+    let bar = progress::bar(paths.len(), "reading frames");
+    let mut frames = Vec::with_capacity(paths.len());
+    for path in paths {
+        frames.push(read_points_file(path).with_context(|| format!("reading frame {}", path.display()))?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(frames)
+}
+
+/// Fits `sequence` (of `points` points in all) as one job, showing a bar, and prints the plan
+/// before and the report after to stderr. A long log's frames are read one window at a time.
+pub fn fit_reported(
+    sequence: &dyn FrameSource,
+    points: usize,
+    method: Method,
+    params: &ValidFitParams,
+) -> anyhow::Result<FittedModel> {
+    let iterations = if crate::fit::windows::is_windowed(sequence, params) {
         format!(
             "windows of {} frames overlapping by {} or more, {} iterations each",
             params.window_frames,
@@ -115,48 +137,11 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     } else {
         format!("{} iterations", params.iterations)
     };
-    eprintln!(
-        "fitting {} to {} frames ({} points) with {iterations}",
-        args.method.name(),
-        point_counts.len(),
-        point_counts.iter().sum::<usize>(),
-    );
-    let interactive = std::io::stderr().is_terminal();
-    let started = std::time::Instant::now();
-    let mut last_print = std::time::Instant::now() - std::time::Duration::from_secs(10);
-    let mut on_progress = |p: &crate::fit::Progress| {
-        let now = std::time::Instant::now();
-        if p.iteration == p.iterations || now.duration_since(last_print).as_secs_f64() >= 1.0 {
-            last_print = now;
-            let elapsed = started.elapsed().as_secs_f64();
-            let eta = elapsed / p.iteration as f64 * (p.iterations - p.iteration) as f64;
-            let line = if let Some(t) = p.rigid_tracks {
-                format!("moving bodies: {}/{} clusters tested  {elapsed:.0}s", t.clusters_done, t.clusters)
-            } else {
-                format!(
-                    "iteration {}/{}  loss {:.5} (chamfer {:.5}, cycle {:.5}, rigidity {:.5})  {:.0}s, eta {:.0}s",
-                    p.iteration,
-                    p.iterations,
-                    p.loss.total,
-                    p.loss.chamfer,
-                    p.loss.cycle,
-                    p.loss.rigidity,
-                    elapsed,
-                    eta
-                )
-            };
-            if interactive {
-                eprint!("\r{line}   ");
-            } else {
-                eprintln!("{line}");
-            }
-        }
-        ControlFlow::Continue(())
-    };
-    let model = fit_log(&sequence, args.method, &params, &mut NoFinishedWindows, &mut on_progress)?;
-    if interactive {
-        eprintln!();
-    }
+    eprintln!("fitting {} to {} frames ({} points) with {iterations}", method.name(), sequence.frame_count(), points,);
+    let mut bar = progress::FitBar::new();
+    let fitted = fit_log(sequence, method, params, &mut NoFinishedWindows, &mut |p| bar.update(p));
+    bar.finish();
+    let model = fitted?;
     let report = model.report();
     for (k, f) in report.frames.iter().enumerate() {
         eprintln!(
@@ -171,6 +156,26 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         );
     }
     eprintln!("fit took {:.1} s", report.fit_seconds);
+    Ok(model)
+}
+
+/// Runs `mbnt fit`.
+pub fn run(args: FitArgs) -> anyhow::Result<()> {
+    let paths = frame_paths(&args.frames)?;
+    let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
+    let params = args.fit.params()?;
+    let poses = match &args.poses {
+        Some(path) => Some(
+            super::odometry_cmd::read_poses(path, paths.len())?.iter().map(crate::odometry::to_row_major).collect(),
+        ),
+        None => None,
+    };
+    // Frames are read when the fit needs them (a long log one window at a time) and again, one
+    // at a time, for the labels: memory is bounded by a window, not by the log. Reading each
+    // once first fails on a bad file before any fitting.
+    let sequence = FileFrames::new(paths, timestamps_s, poses)?;
+    let point_counts = sequence.check()?;
+    let model = fit_reported(&sequence, point_counts.iter().sum(), args.fit.method, &params)?;
 
     let axis = model.time_axis().clone();
     let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
@@ -185,6 +190,7 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
     // One frame at a time: its trajectories when asked, its scene flow to the next frame (none
     // for the last), and the moving body (object id) of every point, -1 for none, as the
     // service's labels.
+    let bar = progress::bar(axis.frames(), "writing labels");
     for k in 0..axis.frames() {
         let points = sequence.frame(k)?;
         if traj_frames.contains(&k) {
@@ -197,7 +203,9 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
         }
         let ids = model.frame_object_ids(k, &points);
         npz.add_i32(&format!("object_{k:03}"), &[ids.len()], &ids)?;
+        bar.inc(1);
     }
+    bar.finish_and_clear();
     npz.add_f64("timestamps", &[times.len()], &times)?;
     npz.finish()?.flush()?;
     eprintln!("wrote {}", args.out.display());

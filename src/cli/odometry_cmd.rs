@@ -9,9 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use nalgebra::Isometry3;
 
-use super::fit_cmd::{frame_paths, read_timestamps};
-use crate::geometry::Point;
-use crate::io::read_points_file;
+use super::fit_cmd::{frame_paths, read_frames, read_timestamps};
 use crate::odometry::{OdometryParams, estimate_poses, from_row_major, to_row_major};
 
 /// Arguments of `mbnt odometry`.
@@ -45,10 +43,7 @@ pub struct OdometryArgs {
 /// Runs `mbnt odometry`.
 pub fn run(args: OdometryArgs) -> anyhow::Result<()> {
     let paths = frame_paths(&args.frames)?;
-    let frames: Vec<Vec<Point>> = paths
-        .iter()
-        .map(|p| read_points_file(p).with_context(|| format!("reading frame {}", p.display())))
-        .collect::<anyhow::Result<_>>()?;
+    let frames = read_frames(&paths)?;
     let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
     let truth = args.ground_truth.as_deref().map(|p| read_poses(p, frames.len())).transpose()?;
     let params = OdometryParams {

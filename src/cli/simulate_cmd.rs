@@ -1,7 +1,10 @@
 //! `mbnt simulate`: write a synthetic LiDAR sequence with exact ground truth to a directory.
 //!
 //! Layout of `--out DIR`:
-//! - `frames/000000.bin` ... (KITTI float32 x, y, z, intensity = 0) or `.ply` (binary PLY);
+//! - `frames/000000.bin` ... (KITTI float32 x, y, z, intensity = 0) or `.ply` (binary PLY); or,
+//!   with `--format av2`, an Argoverse 2 log instead: `sensors/lidar/<timestamp_ns>.feather`
+//!   sweeps (LZ4, float16 x, y, z) and `city_SE3_egovehicle.feather` (the sensor poses), frame k
+//!   at [`AV2_FIRST_TIMESTAMP_NS`] + k / frame rate;
 //! - `timestamps.txt`: one time (s) per line;
 //! - `poses.txt`: one sensor-to-world pose per line, 16 numbers, row-major 4 x 4;
 //! - `ground_truth.npz`: per frame k, `flow_KKK` (N_k x 3, exact scene flow to frame k+1, in
@@ -31,7 +34,8 @@ pub struct SimulateArgs {
     /// Output directory (created if missing).
     #[arg(long)]
     pub out: PathBuf,
-    /// Frame file format: `bin` (KITTI) or `ply` (binary little-endian).
+    /// Frame file format: `bin` (KITTI), `ply` (binary little-endian) or `av2` (an Argoverse 2
+    /// log layout, for `mbnt label av2`).
     #[arg(long, default_value = "bin")]
     pub format: String,
     /// Frames rendered as top-down PNG pictures (comma-separated indices).
@@ -44,8 +48,8 @@ pub struct SimulateArgs {
 
 /// Runs `mbnt simulate`.
 pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
-    if args.format != "bin" && args.format != "ply" {
-        anyhow::bail!("--format must be bin or ply, got {:?}", args.format);
+    if !["bin", "ply", "av2"].contains(&args.format.as_str()) {
+        anyhow::bail!("--format must be bin, ply or av2, got {:?}", args.format);
     }
     let started = std::time::Instant::now();
     let sim = simulate(&SimParams::log(args.seed, args.frames))?;
@@ -65,14 +69,23 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Writes frames, timestamps, poses, ground truth and a summary of `sim` under `dir`.
+/// Timestamp (ns) of frame 0 of a simulated AV2 log: of the size of AV2's own (nanoseconds of
+/// the GPS epoch in 2020), so that readers meet realistic 18-digit names.
+pub const AV2_FIRST_TIMESTAMP_NS: i64 = 315_966_000_000_000_000;
+
+/// Writes frames, timestamps, poses, ground truth and a summary of `sim` under `dir`; `format`
+/// is `bin`, `ply` or `av2` (see the module documentation).
 pub fn write_sequence(sim: &SimSequence, dir: &Path, format: &str) -> anyhow::Result<()> {
-    let frames_dir = dir.join("frames");
-    std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
-    for (k, frame) in sim.frames.iter().enumerate() {
-        let path = frames_dir.join(format!("{k:06}.{format}"));
-        let bytes = if format == "ply" { ply_bytes(frame) } else { kitti_bytes(frame) };
-        std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+    if format == "av2" {
+        write_av2_log(sim, dir)?;
+    } else {
+        let frames_dir = dir.join("frames");
+        std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
+        for (k, frame) in sim.frames.iter().enumerate() {
+            let path = frames_dir.join(format!("{k:06}.{format}"));
+            let bytes = if format == "ply" { ply_bytes(frame) } else { kitti_bytes(frame) };
+            std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+        }
     }
     let timestamps: String = sim.timestamps_s.iter().map(|t| format!("{t:.6}\n")).collect();
     std::fs::write(dir.join("timestamps.txt"), timestamps)?;
@@ -113,8 +126,32 @@ pub fn write_sequence(sim: &SimSequence, dir: &Path, format: &str) -> anyhow::Re
     Ok(())
 }
 
+/// The sweeps and poses of `sim` as an Argoverse 2 log under `dir`.
+#[cfg(feature = "av2")]
+fn write_av2_log(sim: &SimSequence, dir: &Path) -> anyhow::Result<()> {
+    use crate::io::av2::{LIDAR_DIR, POSES_FILE, write_city_poses, write_sweep};
+    let lidar = dir.join(LIDAR_DIR);
+    std::fs::create_dir_all(&lidar).with_context(|| format!("creating {}", lidar.display()))?;
+    let timestamps_ns: Vec<i64> =
+        sim.timestamps_s.iter().map(|&t| AV2_FIRST_TIMESTAMP_NS + (t * 1e9).round() as i64).collect();
+    for (frame, timestamp_ns) in sim.frames.iter().zip(&timestamps_ns) {
+        let path = lidar.join(format!("{timestamp_ns}.feather"));
+        let bytes = write_sweep(Vec::new(), frame)?;
+        std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+    }
+    let path = dir.join(POSES_FILE);
+    std::fs::write(&path, write_city_poses(Vec::new(), &timestamps_ns, &sim.ego_poses)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+#[cfg(not(feature = "av2"))]
+fn write_av2_log(_sim: &SimSequence, _dir: &Path) -> anyhow::Result<()> {
+    anyhow::bail!("--format av2 needs the `av2` cargo feature (Arrow support), which this build lacks")
+}
+
 /// KITTI velodyne layout: float32 x, y, z, intensity per point (intensity 0: not simulated).
-fn kitti_bytes(points: &[Point]) -> Vec<u8> {
+pub fn kitti_bytes(points: &[Point]) -> Vec<u8> {
     let mut out = Vec::with_capacity(points.len() * 16);
     for p in points {
         for v in [p[0], p[1], p[2], 0.0] {

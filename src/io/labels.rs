@@ -1,5 +1,6 @@
 //! Label export: per-point flows of a sequence as `.npz` (NumPy) or, with the `av2` feature, as
-//! a zip of Feather v2 files in the ZeroFlow / SceneFlowZoo Argoverse 2 layout.
+//! a zip of Feather v2 files in the ZeroFlow / SceneFlowZoo Argoverse 2 layout; and one frame's
+//! labels as a file of its own in either format (`mbnt label`).
 
 use std::io::{Seek, Write};
 
@@ -67,10 +68,6 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
     valid: Option<&[Vec<bool>]>,
     object_ids: Option<&[Vec<i32>]>,
 ) -> Result<W, WriteError> {
-    use std::sync::Arc;
-
-    use arrow_array::{ArrayRef, BooleanArray, Float32Array, Int32Array, RecordBatch};
-    use arrow_schema::{DataType, Field, Schema};
     use zip::write::SimpleFileOptions;
 
     if let Some(ids) = object_ids {
@@ -106,6 +103,35 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
             )));
         }
     }
+    let mut zip = zip::ZipWriter::new(w);
+    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    let mut buf = Vec::new();
+    for (k, flow) in flows.iter().enumerate() {
+        buf.clear();
+        write_flow_feather(&mut buf, flow, valid.map(|v| v[k].as_slice()), object_ids.map(|ids| ids[k].as_slice()))?;
+        // zip64 records only when an entry could exceed the classic u32 sizes.
+        zip.start_file(format!("{k:06}.feather"), options.large_file(buf.len() as u64 >= u32::MAX as u64 - 4096))?;
+        zip.write_all(&buf)?;
+    }
+    Ok(zip.finish()?)
+}
+
+/// Writes the labels of one frame as a Feather v2 file (uncompressed Arrow IPC): the columns of
+/// [`write_labels_av2_zip`], one row per point of `flow`. `valid` (all true when `None`) and
+/// `object_ids` (all -1 when `None`) must have one entry per point.
+#[cfg(feature = "av2")]
+pub fn write_flow_feather<W: Write>(
+    w: W,
+    flow: &[Point],
+    valid: Option<&[bool]>,
+    object_ids: Option<&[i32]>,
+) -> Result<W, WriteError> {
+    use std::sync::Arc;
+
+    use arrow_array::{ArrayRef, BooleanArray, Float32Array, Int32Array, RecordBatch};
+    use arrow_schema::{DataType, Field, Schema};
+
+    let (valid, ids) = filled_masks(flow.len(), valid, object_ids)?;
     let schema = Arc::new(Schema::new(vec![
         Field::new("flow_tx_m", DataType::Float32, false),
         Field::new("flow_ty_m", DataType::Float32, false),
@@ -113,32 +139,43 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
         Field::new("is_valid", DataType::Boolean, false),
         Field::new("object_id", DataType::Int32, false),
     ]));
-    let mut zip = zip::ZipWriter::new(w);
-    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
-    let mut buf = Vec::new();
-    for (k, flow) in flows.iter().enumerate() {
-        let column =
-            |axis: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(flow.iter().map(|f| f[axis]))) };
-        let is_valid: BooleanArray = match valid {
-            Some(v) => v[k].iter().map(|&b| Some(b)).collect(),
-            None => std::iter::repeat_n(Some(true), flow.len()).collect(),
-        };
-        let object_id: Int32Array = match object_ids {
-            Some(ids) => Int32Array::from(ids[k].clone()),
-            None => Int32Array::from(vec![-1; flow.len()]),
-        };
-        let batch = RecordBatch::try_new(
-            schema.clone(),
-            vec![column(0), column(1), column(2), Arc::new(is_valid) as ArrayRef, Arc::new(object_id) as ArrayRef],
-        )?;
-        buf.clear();
-        let mut writer = arrow_ipc::writer::FileWriter::try_new(&mut buf, &schema)?;
-        writer.write(&batch)?;
-        writer.finish()?;
-        drop(writer);
-        // zip64 records only when an entry could exceed the classic u32 sizes.
-        zip.start_file(format!("{k:06}.feather"), options.large_file(buf.len() as u64 >= u32::MAX as u64 - 4096))?;
-        zip.write_all(&buf)?;
+    let column = |axis: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(flow.iter().map(|f| f[axis]))) };
+    let columns: Vec<ArrayRef> =
+        vec![column(0), column(1), column(2), Arc::new(BooleanArray::from(valid)), Arc::new(Int32Array::from(ids))];
+    super::feather::write_batch(w, &RecordBatch::try_new(schema, columns)?, false)
+}
+
+/// Writes the labels of one frame as an `.npz`: `flow` (float32, (N, 3), metres, the layout of
+/// [`write_labels_npz`]'s `flow_KKK`), `is_valid` (bool, (N,)) and `object_id` (int32, (N,), -1
+/// for none), with the defaults and checks of [`write_flow_feather`].
+pub fn write_flow_npz<W: Write + Seek>(
+    w: W,
+    flow: &[Point],
+    valid: Option<&[bool]>,
+    object_ids: Option<&[i32]>,
+) -> Result<W, WriteError> {
+    let n = flow.len();
+    let (valid, ids) = filled_masks(n, valid, object_ids)?;
+    let mut npz = NpzWriter::new(w);
+    npz.add_f32("flow", &[n, 3], flow.as_flattened())?;
+    npz.add_bool("is_valid", &[n], &valid)?;
+    npz.add_i32("object_id", &[n], &ids)?;
+    npz.finish()
+}
+
+/// A frame's validity mask and object ids, with their defaults (all valid, no object) for
+/// `None`. Errors: a given array whose length is not the frame's `n` points.
+fn filled_masks(
+    n: usize,
+    valid: Option<&[bool]>,
+    object_ids: Option<&[i32]>,
+) -> Result<(Vec<bool>, Vec<i32>), WriteError> {
+    for (what, len) in
+        [("validity mask entries", valid.map(<[bool]>::len)), ("object ids", object_ids.map(<[i32]>::len))]
+    {
+        if let Some(len) = len.filter(|&len| len != n) {
+            return Err(WriteError::Inconsistent(format!("{len} {what} for {n} points")));
+        }
     }
-    Ok(zip.finish()?)
+    Ok((valid.map_or_else(|| vec![true; n], <[bool]>::to_vec), object_ids.map_or_else(|| vec![-1; n], <[i32]>::to_vec)))
 }

@@ -1,14 +1,21 @@
-//! Point-cloud readers (PLY, PCD, KITTI `.bin`, NumPy `.npy`) and NumPy / label writers.
+//! Point-cloud readers (PLY, PCD, KITTI `.bin`, NumPy `.npy`, Argoverse 2 Feather sweeps) and
+//! NumPy / label writers.
 //!
 //! Readers take the whole file as bytes and return metric x, y, z per point. They never panic
 //! and never trust a size written in a header: every declared count is checked against the
 //! number of bytes actually present before anything is allocated. Points with a NaN or infinite
 //! coordinate are an error (the fitting code needs finite input); an empty cloud is valid.
+//! Feather sweeps need the `av2` cargo feature; without it they are recognised and refused with
+//! [`ReadError::Unsupported`].
 //!
 //! Writers produce `.npy` arrays, `.npz` archives ([`npz::NpzWriter`]) and the label exports of
 //! [`labels`]; [`npz::read_npz`] reads archives back, and [`flow_pair`] loads a real pair with
 //! ground-truth scene flow from one.
 
+#[cfg(feature = "av2")]
+pub mod av2;
+#[cfg(feature = "av2")]
+pub mod feather;
 pub mod flow_pair;
 pub mod kitti;
 pub mod labels;
@@ -33,6 +40,9 @@ pub enum Format {
     KittiBin,
     /// NumPy `.npy` with an (N, >=3) float32 or float64 array.
     Npy,
+    /// Feather v2 (Arrow IPC file), uncompressed or LZ4, with float16/32/64 columns `x`, `y`,
+    /// `z`: Argoverse 2 sweeps. Read only with the `av2` cargo feature.
+    Feather,
 }
 
 impl fmt::Display for Format {
@@ -42,6 +52,7 @@ impl fmt::Display for Format {
             Format::Pcd => "PCD",
             Format::KittiBin => "KITTI .bin",
             Format::Npy => "NPY",
+            Format::Feather => "Feather",
         })
     }
 }
@@ -90,7 +101,10 @@ pub enum ReadError {
         what: String,
     },
     /// The content matches no known format.
-    #[error("unknown point-cloud format{}: no PLY/PCD/NPY magic and not a plausible KITTI .bin", hint_text(.name_hint))]
+    #[error(
+        "unknown point-cloud format{}: no PLY/PCD/NPY/Arrow magic and not a plausible KITTI .bin",
+        hint_text(.name_hint)
+    )]
     UnknownFormat {
         /// The file name given as a hint, if any.
         name_hint: Option<String>,
@@ -151,6 +165,12 @@ pub enum WriteError {
     Arrow(#[from] arrow_schema::ArrowError),
 }
 
+/// First bytes of an Arrow IPC file (Feather v2); kept here too so that detection works in
+/// builds without the `av2` feature.
+pub(crate) const FEATHER_MAGIC: &[u8; 6] = b"ARROW1";
+/// First bytes of a Feather v1 file.
+pub(crate) const FEATHER_V1_MAGIC: &[u8; 4] = b"FEA1";
+
 /// Largest plausible |coordinate| (m) of a KITTI `.bin` point, used only when guessing the format
 /// of a headerless file: LiDAR returns lie within a few hundred metres, random bytes as floats
 /// are mostly astronomically large or tiny.
@@ -159,11 +179,12 @@ const KITTI_PLAUSIBLE_ABS_M: f32 = 1.0e4;
 /// Which format `bytes` are in, from their content; `name_hint` (a file name) only decides for
 /// headerless data.
 ///
-/// Order: the magic of PLY (`ply` line), PCD (`# .PCD` or a first `VERSION`/`FIELDS` line) and NPY
-/// (`\x93NUMPY`) wins over any name; then a name ending in `.bin` means KITTI; then data whose
-/// length is a multiple of 16 bytes and whose floats are all finite with plausible coordinates
-/// is KITTI; then a `.ply`/`.pcd`/`.npy` name picks that reader (which then reports what is wrong
-/// with the header). Cost: O(len) for the KITTI check.
+/// Order: the magic of PLY (`ply` line), PCD (`# .PCD` or a first `VERSION`/`FIELDS` line), NPY
+/// (`\x93NUMPY`) and Feather (`ARROW1`, or Feather v1's `FEA1`, which the reader refuses by name)
+/// wins over any name; then a name ending in `.bin` means KITTI; then data whose length is a
+/// multiple of 16 bytes and whose floats are all finite with plausible coordinates is KITTI; then
+/// a `.ply`/`.pcd`/`.npy`/`.feather`/`.arrow` name picks that reader (which then reports what is
+/// wrong with the header). Cost: O(len) for the KITTI check.
 pub fn detect_format(bytes: &[u8], name_hint: Option<&str>) -> Result<Format, ReadError> {
     if bytes.starts_with(b"ply\n") || bytes.starts_with(b"ply\r\n") {
         return Ok(Format::Ply);
@@ -173,6 +194,9 @@ pub fn detect_format(bytes: &[u8], name_hint: Option<&str>) -> Result<Format, Re
     }
     if pcd::looks_like_pcd(bytes) {
         return Ok(Format::Pcd);
+    }
+    if bytes.starts_with(FEATHER_MAGIC) || bytes.starts_with(FEATHER_V1_MAGIC) {
+        return Ok(Format::Feather);
     }
     let ext = name_hint.and_then(|n| Path::new(n).extension()).and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
     if ext.as_deref() == Some("bin") {
@@ -185,6 +209,7 @@ pub fn detect_format(bytes: &[u8], name_hint: Option<&str>) -> Result<Format, Re
         Some("ply") => Ok(Format::Ply),
         Some("pcd") => Ok(Format::Pcd),
         Some("npy") => Ok(Format::Npy),
+        Some("feather" | "arrow") => Ok(Format::Feather),
         _ => Err(ReadError::UnknownFormat { name_hint: name_hint.map(str::to_owned) }),
     }
 }
@@ -203,6 +228,13 @@ pub fn read_points_as(bytes: &[u8], format: Format) -> Result<Vec<Point>, ReadEr
         Format::Pcd => pcd::read_pcd(bytes),
         Format::KittiBin => kitti::read_kitti_bin(bytes),
         Format::Npy => npy::read_npy_points(bytes),
+        #[cfg(feature = "av2")]
+        Format::Feather => feather::read_feather(bytes),
+        #[cfg(not(feature = "av2"))]
+        Format::Feather => Err(ReadError::Unsupported {
+            format: Format::Feather,
+            what: "this build has no Arrow support: rebuild with the `av2` cargo feature (on by default)".into(),
+        }),
     }
 }
 

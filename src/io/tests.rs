@@ -882,6 +882,19 @@ fn labels_npz_refuses_object_ids_that_do_not_match_the_flow() {
     assert!(err.to_string().contains("frame 0"), "{err}");
 }
 
+#[test]
+fn one_frame_npz_labels_hold_flow_validity_and_objects() {
+    let flow = sample_points();
+    let ids = [-1, 2, 2, -1, 0];
+    let bytes = labels::write_flow_npz(Cursor::new(Vec::new()), &flow, None, Some(&ids)).unwrap().into_inner();
+    let arrays = npz::read_npz(&bytes).unwrap();
+    assert_eq!(arrays["flow"], NpyArray { shape: vec![5, 3], data: NpyData::F32(flow.as_flattened().to_vec()) });
+    assert_eq!(arrays["is_valid"].data, NpyData::Bool(vec![true; 5]));
+    assert_eq!(arrays["object_id"].data, NpyData::I32(ids.to_vec()));
+    let err = labels::write_flow_npz(Cursor::new(Vec::new()), &flow, Some(&[true; 4]), None).unwrap_err();
+    assert_eq!(err.to_string(), "inconsistent input: 4 validity mask entries for 5 points");
+}
+
 #[cfg(feature = "av2")]
 mod av2 {
     use arrow_array::{Array, BooleanArray, Float32Array, Int32Array};
@@ -964,6 +977,276 @@ mod av2 {
     }
 }
 
+/// Feather v2 sweeps (Argoverse 2) and the AV2 log layout.
+#[cfg(feature = "av2")]
+mod feather_sweeps {
+    use std::sync::Arc;
+
+    use arrow_array::{ArrayRef, Float32Array, Float64Array, Int32Array, RecordBatch};
+    use arrow_schema::{DataType, Field, Schema};
+
+    use super::*;
+    use crate::io::av2::{self, LogError};
+    use crate::io::feather::{self, Values};
+
+    /// Points spanning AV2's ranges: near, far (beyond 64 m, where float16 steps are 6.25 cm),
+    /// negative, a value float16 holds exactly.
+    fn sweep_points() -> Vec<Point> {
+        vec![[0.0, 0.0, 0.0], [1.3, -2.71, -1.9], [-75.37, 12.125, 3.3], [99.9, -0.001, 0.5], [8.0, 16.0, -32.0]]
+    }
+
+    /// One uncompressed IPC file of `batches`, all of `schema`.
+    fn ipc_file(schema: &Arc<Schema>, batches: &[RecordBatch]) -> Vec<u8> {
+        let mut writer = arrow_ipc::writer::FileWriter::try_new(Vec::new(), schema).unwrap();
+        for b in batches {
+            writer.write(b).unwrap();
+        }
+        writer.finish().unwrap();
+        writer.into_inner().unwrap()
+    }
+
+    /// A table of float columns `names`, one batch per entry of `rows` (each row's values in
+    /// column order), float32 when `f32` is set, else float64.
+    fn float_table(names: &[&str], rows: &[Vec<Vec<f64>>], f32: bool) -> Vec<u8> {
+        let t = if f32 { DataType::Float32 } else { DataType::Float64 };
+        let schema = Arc::new(Schema::new(names.iter().map(|n| Field::new(*n, t.clone(), false)).collect::<Vec<_>>()));
+        let batches: Vec<RecordBatch> = rows
+            .iter()
+            .map(|batch| {
+                let columns: Vec<ArrayRef> = (0..names.len())
+                    .map(|c| -> ArrayRef {
+                        let v = batch.iter().map(|r| r[c]);
+                        if f32 {
+                            Arc::new(Float32Array::from_iter_values(v.map(|x| x as f32)))
+                        } else {
+                            Arc::new(Float64Array::from_iter_values(v))
+                        }
+                    })
+                    .collect();
+                RecordBatch::try_new(schema.clone(), columns).unwrap()
+            })
+            .collect();
+        ipc_file(&schema, &batches)
+    }
+
+    fn rows(points: &[Point]) -> Vec<Vec<f64>> {
+        points.iter().map(|p| p.iter().map(|&c| c as f64).collect()).collect()
+    }
+
+    #[test]
+    fn an_av2_sweep_reads_back_within_float16_rounding() {
+        let points = sweep_points();
+        let bytes = av2::write_sweep(Vec::new(), &points).unwrap();
+        assert!(bytes.starts_with(b"ARROW1") && bytes.ends_with(b"ARROW1"));
+        assert_eq!(detect_format(&bytes, None).unwrap(), Format::Feather);
+        // The content decides, whatever the name.
+        assert_eq!(detect_format(&bytes, Some("sweep.bin")).unwrap(), Format::Feather);
+        let back = read_points(&bytes, None).unwrap();
+        assert_eq!(back.len(), points.len());
+        for (p, q) in points.iter().zip(&back) {
+            for (a, b) in p.iter().zip(q) {
+                // float16 keeps 11 significant bits: rounding moves a value by at most 2^-11 of it.
+                assert!((a - b).abs() <= a.abs() * 2f32.powi(-11) + 1e-7, "{p:?} read back as {q:?}");
+            }
+        }
+        assert_eq!(back[4], [8.0, 16.0, -32.0], "powers of two are exact in float16");
+        assert_eq!(read_points(&bytes, Some("315966000000000000.feather")).unwrap(), back);
+    }
+
+    #[test]
+    fn float32_and_float64_columns_in_several_batches_read_exactly() {
+        let points = sample_points();
+        let (a, b) = points.split_at(2);
+        for f32 in [true, false] {
+            // Extra columns around the coordinates are skipped, whatever their order.
+            let bytes = float_table(&["t", "z", "x", "y"], &[rows_zxy(a), rows_zxy(b)], f32);
+            assert_eq!(read_points(&bytes, None).unwrap(), points, "float32: {f32}");
+        }
+        let empty = float_table(&["x", "y", "z"], &[], true);
+        assert_eq!(read_points(&empty, None).unwrap(), Vec::<Point>::new());
+    }
+
+    /// Rows of `t, z, x, y` for the table of the test above.
+    fn rows_zxy(points: &[Point]) -> Vec<Vec<f64>> {
+        points.iter().map(|p| vec![-1.0, p[2] as f64, p[0] as f64, p[1] as f64]).collect()
+    }
+
+    #[test]
+    fn a_nan_or_infinite_coordinate_is_an_error_naming_the_point() {
+        let mut r = rows(&sample_points());
+        r[3][1] = f64::NAN;
+        let bytes = float_table(&["x", "y", "z"], &[r.clone()], true);
+        assert!(matches!(read_points(&bytes, None), Err(ReadError::NonFinite { index: 3 })));
+        // Finite in float64, infinite as the f32 the fit uses.
+        r[3][1] = 1e300;
+        let bytes = float_table(&["x", "y", "z"], &[r], false);
+        assert!(matches!(read_points(&bytes, None), Err(ReadError::NonFinite { index: 3 })));
+    }
+
+    #[test]
+    fn a_missing_or_non_float_coordinate_column_is_a_clear_error() {
+        let bytes = float_table(&["y", "z", "intensity"], &[rows(&sample_points())], true);
+        assert_eq!(err_text(read_points(&bytes, None)), "Feather header: no column 'x' (columns: y, z, intensity)");
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("x", DataType::Int32, false),
+            Field::new("y", DataType::Float32, false),
+            Field::new("z", DataType::Float32, false),
+        ]));
+        let batch = RecordBatch::try_new(
+            schema.clone(),
+            vec![
+                Arc::new(Int32Array::from(vec![1])),
+                Arc::new(Float32Array::from(vec![2.0])),
+                Arc::new(Float32Array::from(vec![3.0])),
+            ],
+        )
+        .unwrap();
+        assert_eq!(
+            err_text(read_points(&ipc_file(&schema, &[batch]), None)),
+            "unsupported Feather: integer column 'x': x, y, z must be float16, float32 or float64"
+        );
+    }
+
+    #[test]
+    fn truncated_and_damaged_files_are_errors_not_panics() {
+        let bytes = av2::write_sweep(Vec::new(), &sweep_points()).unwrap();
+        // Every cut of the file (the footer, then the batch, is lost).
+        for len in 0..bytes.len() {
+            assert!(read_points(&bytes[..len], Some("a.feather")).is_err(), "a cut to {len} bytes was read");
+        }
+        let mut no_magic = bytes.clone();
+        no_magic.truncate(bytes.len() - 1);
+        assert_eq!(
+            err_text(read_points(&no_magic, None)),
+            "Feather data: no 'ARROW1' magic at the end: the file is truncated (or an IPC stream, not a file)"
+        );
+        assert!(err_text(read_points(b"FEA1 an old feather file", None)).contains("Feather v1"));
+        // A name picks the reader for content without magic; the reader says what is wrong.
+        assert_eq!(
+            err_text(read_points(b"not arrow at all", Some("sweep.feather"))),
+            "Feather header: no 'ARROW1' magic at the start: not an Arrow IPC / Feather v2 file"
+        );
+    }
+
+    /// Offset in `file` of the body of its first record batch and the (offset, length) of the
+    /// batch's buffers within that body, read with arrow's own flatbuffer accessors.
+    fn first_batch_layout(file: &[u8]) -> (usize, Vec<(usize, usize)>) {
+        let footer_len = i32::from_le_bytes(file[file.len() - 10..file.len() - 6].try_into().unwrap()) as usize;
+        let end = file.len() - 10;
+        let footer = arrow_ipc::root_as_footer(&file[end - footer_len..end]).unwrap();
+        let block = footer.recordBatches().unwrap().get(0);
+        let meta = &file[block.offset() as usize..][..block.metaDataLength() as usize];
+        let message = arrow_ipc::root_as_message(&meta[8..]).unwrap();
+        let batch = message.header_as_record_batch().unwrap();
+        let buffers = batch.buffers().unwrap().iter().map(|b| (b.offset() as usize, b.length() as usize)).collect();
+        (block.offset() as usize + block.metaDataLength() as usize, buffers)
+    }
+
+    #[test]
+    fn a_compressed_buffer_declaring_more_than_lz4_can_hold_is_refused_before_allocating() {
+        let mut bytes = av2::write_sweep(Vec::new(), &sweep_points()).unwrap();
+        let (body, buffers) = first_batch_layout(&bytes);
+        // Buffer 1 holds x's values: an LZ4 frame after its int64 uncompressed length.
+        let (offset, len) = buffers[1];
+        assert!(len > 8);
+        let at = body + offset;
+        bytes[at..at + 8].copy_from_slice(&(1i64 << 50).to_le_bytes());
+        let text = err_text(read_points(&bytes, None));
+        assert!(text.contains("declares 1125899906842624 bytes, more than"), "{text}");
+        // A buffer reaching past the body.
+        let mut bytes = av2::write_sweep(Vec::new(), &sweep_points()).unwrap();
+        let text = err_text(read_points(&patch_first_buffer_length(&mut bytes, 1 << 40), None));
+        assert!(text.contains("lies outside the"), "{text}");
+    }
+
+    /// `file` with the declared length of buffer 1 of its first batch set to `len`, found by
+    /// its current value in the message (the flatbuffer stores it as a little-endian int64).
+    fn patch_first_buffer_length(file: &mut [u8], len: i64) -> Vec<u8> {
+        let (_, buffers) = first_batch_layout(file);
+        let (offset, old) = buffers[1];
+        let mut pattern = (offset as i64).to_le_bytes().to_vec();
+        pattern.extend_from_slice(&(old as i64).to_le_bytes());
+        let at = file.windows(16).position(|w| w == pattern.as_slice()).expect("the buffer entry");
+        file[at + 8..at + 16].copy_from_slice(&len.to_le_bytes());
+        file.to_vec()
+    }
+
+    #[test]
+    fn numeric_columns_read_as_floats_and_exact_integers() {
+        let poses = [[1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, -2.0, 0.0, 0.0, 1.0, 0.25, 0.0, 0.0, 0.0, 1.0]];
+        let timestamps_ns = [315_966_265_659_927_001i64];
+        let bytes = av2::write_city_poses(Vec::new(), &timestamps_ns, &poses).unwrap();
+        let columns = feather::read_columns(&bytes, &["timestamp_ns", "tx_m", "qw"]).unwrap();
+        // An odd nanosecond count above 2^53: exact only as an integer.
+        assert_eq!(columns, [Values::Int(timestamps_ns.to_vec()), Values::Float(vec![5.0]), Values::Float(vec![1.0])]);
+        let back = av2::read_city_poses(&bytes, Path::new("p.feather")).unwrap();
+        assert_eq!(back.len(), 1);
+        let m = back[&timestamps_ns[0]];
+        for (a, b) in m.iter().zip(&poses[0]) {
+            assert!((a - b).abs() < 1e-12, "{m:?}");
+        }
+    }
+
+    /// A log directory with sweeps at `timestamps_ns` and poses at `pose_times_ns` (a yaw of
+    /// 0.1 rad per pose, 1 m along x per pose).
+    fn write_log(dir: &Path, timestamps_ns: &[i64], pose_times_ns: &[i64]) {
+        std::fs::create_dir_all(dir.join(av2::LIDAR_DIR)).unwrap();
+        for &t in timestamps_ns {
+            let bytes = av2::write_sweep(Vec::new(), &sample_points()).unwrap();
+            std::fs::write(dir.join(av2::LIDAR_DIR).join(format!("{t}.feather")), bytes).unwrap();
+        }
+        let poses: Vec<[f64; 16]> = (0..pose_times_ns.len())
+            .map(|k| {
+                let (s, c) = (0.1 * k as f64).sin_cos();
+                [c, -s, 0.0, k as f64, s, c, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+            })
+            .collect();
+        std::fs::write(dir.join(av2::POSES_FILE), av2::write_city_poses(Vec::new(), pose_times_ns, &poses).unwrap())
+            .unwrap();
+    }
+
+    #[test]
+    fn a_log_lists_sweeps_by_timestamp_with_their_poses() {
+        let dir = tempfile::tempdir().unwrap();
+        // 9 < 10 as numbers though "10" < "9" as names; poses in another order, one extra.
+        write_log(dir.path(), &[10, 9, 1_000_000_000], &[1_000_000_000, 10, 9, 11]);
+        let log = av2::read_log(dir.path()).unwrap();
+        assert_eq!(log.timestamps_ns, [9, 10, 1_000_000_000]);
+        assert!(log.sweep_paths[0].ends_with("9.feather"));
+        let times_s = log.timestamps_s();
+        assert_eq!(times_s[..2], [0.0, 1e-9]);
+        assert!((times_s[2] - 0.999_999_991).abs() < 1e-15, "{times_s:?}");
+        // The pose of timestamp 9 is the third row (k = 2): 2 m along x.
+        assert_eq!(log.poses[0][3], 2.0);
+        assert_eq!(log.poses[2][3], 0.0);
+    }
+
+    #[test]
+    fn a_sweep_without_a_pose_or_a_bad_name_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        write_log(dir.path(), &[100, 200], &[100]);
+        let err = av2::read_log(dir.path()).unwrap_err();
+        assert!(matches!(err, LogError::MissingPose { timestamp_ns: 200, .. }), "{err}");
+        assert!(err.to_string().starts_with("sweep 200.feather has no pose of that timestamp in"), "{err}");
+        std::fs::write(dir.path().join(av2::LIDAR_DIR).join("latest.feather"), b"").unwrap();
+        assert!(matches!(av2::read_log(dir.path()).unwrap_err(), LogError::BadSweepName(_)));
+        let empty = tempfile::tempdir().unwrap();
+        assert!(matches!(av2::read_log(empty.path()).unwrap_err(), LogError::List { .. }));
+    }
+}
+
+/// Without Arrow, a Feather upload is recognised and refused by name, not taken for KITTI.
+#[cfg(not(feature = "av2"))]
+#[test]
+fn without_the_av2_feature_a_feather_file_is_a_clear_error() {
+    let bytes = b"ARROW1\0\0 any body ARROW1";
+    assert_eq!(detect_format(bytes, Some("a.bin")).unwrap(), Format::Feather);
+    assert_eq!(
+        err_text(read_points(bytes, None)),
+        "unsupported Feather: this build has no Arrow support: rebuild with the `av2` cargo feature (on by default)"
+    );
+}
+
 // ---------- never panic ----------
 
 proptest! {
@@ -992,6 +1275,21 @@ proptest! {
         let _ = read_points(&bytes, Some(name));
         let _ = read_points(&bytes, None);
         let _ = npy::read_npy(&bytes);
+    }
+
+    #[cfg(feature = "av2")]
+    #[test]
+    fn read_points_never_panics_on_damaged_feather_sweeps(
+        cut in any::<prop::sample::Index>(),
+        flips in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..6),
+    ) {
+        let mut bytes = crate::io::av2::write_sweep(Vec::new(), &sample_points()).unwrap();
+        for (at, value) in flips {
+            let i = at.index(bytes.len());
+            bytes[i] = value;
+        }
+        bytes.truncate(cut.index(bytes.len() + 1));
+        let _ = read_points(&bytes, Some("a.feather"));
     }
 }
 
