@@ -107,7 +107,7 @@ pub fn read_timestamps(path: &Path) -> anyhow::Result<Vec<f64>> {
         .collect()
 }
 
-/// Reads frame files in order, showing a bar.
+/// Reads frame files in order, showing a bar (for commands that need every frame at once).
 pub fn read_frames(paths: &[PathBuf]) -> anyhow::Result<Vec<Vec<Point>>> {
     let bar = progress::bar(paths.len(), "reading frames");
     let mut frames = Vec::with_capacity(paths.len());

@@ -40,14 +40,19 @@ impl FileFrames {
     /// without points, fails here rather than after the windows before it were fitted. Holds one
     /// frame at a time.
     pub fn check(&self) -> anyhow::Result<Vec<usize>> {
-        self.paths
+        let bar = super::progress::bar(self.paths.len(), "reading frames");
+        let counts = self
+            .paths
             .iter()
             .map(|path| {
                 let points = read(path)?;
                 ensure!(!points.is_empty(), "frame {} has no points", path.display());
+                bar.inc(1);
                 Ok(points.len())
             })
-            .collect()
+            .collect();
+        bar.finish_and_clear();
+        counts
     }
 
     /// Frame `k`'s points (sensor coordinates of sweep k).

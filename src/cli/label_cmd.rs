@@ -24,9 +24,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use nalgebra::Isometry3;
 
-use super::fit_cmd::{FitOptions, fit_reported, read_frames, read_timestamps};
+use super::fit_cmd::{FitOptions, fit_reported, read_timestamps};
+use super::frames::FileFrames;
 use super::progress;
-use crate::fit::Sequence;
+use crate::fit::FrameSource;
 use crate::geometry::Point;
 use crate::io::labels::write_flow_npz;
 use crate::odometry::{from_row_major, to_row_major};
@@ -113,9 +114,11 @@ impl LabelFormat {
     }
 }
 
-/// A log read into memory: the fit's input and the name of each frame's label file.
+/// A log on disk: the fit's input and the name of each frame's label file.
 struct Log {
-    sequence: Sequence,
+    /// The frame files with their times and poses, read when needed (a long log's fit reads
+    /// one window at a time, the labels one frame at a time).
+    frames: FileFrames,
     /// Label file name of each frame, without extension.
     names: Vec<String>,
 }
@@ -140,22 +143,23 @@ fn label(log: Log, fit: &FitOptions, out: &Path, format: LabelFormat) -> anyhow:
         bail!("feather labels need the `av2` cargo feature (this build has none): use --format npz");
     }
     let params = fit.params()?;
-    let points = log.sequence.frames.iter().map(Vec::len).sum();
-    let model = fit_reported(&log.sequence, points, fit.method, &params)?;
-    let frames = &log.sequence.frames;
-    let flows = model.scene_flow(frames);
-    let object_ids = model.object_ids(frames);
+    let points = log.frames.check()?.iter().sum();
+    let model = fit_reported(&log.frames, points, fit.method, &params)?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let bar = progress::bar(flows.len(), "writing labels");
-    for (k, flow) in flows.iter().enumerate() {
+    // One frame at a time: memory bounded by the fit's window, not by the log.
+    let labelled = log.frames.frame_count().saturating_sub(1);
+    let bar = progress::bar(labelled, "writing labels");
+    for k in 0..labelled {
+        let points = log.frames.frame(k)?;
+        let flow = model.frame_scene_flow(k, &points);
         let path = out.join(format!("{}.{}", log.names[k], format.extension()));
-        write_label_file(&path, format, flow, &object_ids[k])?;
+        write_label_file(&path, format, &flow, &model.frame_object_ids(k, &points))?;
         bar.inc(1);
     }
     bar.finish_and_clear();
     eprintln!(
         "wrote {} label files to {} (the last frame, {}, has no next frame and no labels)",
-        flows.len(),
+        labelled,
         out.display(),
         log.names.last().map_or("", String::as_str)
     );
@@ -181,10 +185,9 @@ fn write_label_file(path: &Path, format: LabelFormat, flow: &[Point], object_ids
 #[cfg(feature = "av2")]
 fn read_av2(dir: &Path) -> anyhow::Result<Log> {
     let log = crate::io::av2::read_log(dir).with_context(|| format!("reading the AV2 log {}", dir.display()))?;
-    let frames = read_frames(&log.sweep_paths)?;
     Ok(Log {
         names: log.timestamps_ns.iter().map(i64::to_string).collect(),
-        sequence: Sequence { frames, timestamps_s: Some(log.timestamps_s()), poses: Some(log.poses) },
+        frames: FileFrames::new(log.sweep_paths.clone(), Some(log.timestamps_s()), Some(log.poses))?,
     })
 }
 
@@ -241,8 +244,7 @@ fn read_kitti(dir: &Path, poses: Option<&Path>, no_poses: bool) -> anyhow::Resul
             Some(camera.iter().map(|p| to_row_major(&velodyne_pose(p, &velo_to_cam))).collect())
         }
     };
-    let frames = read_frames(&paths)?;
-    Ok(Log { sequence: Sequence { frames, timestamps_s, poses }, names })
+    Ok(Log { frames: FileFrames::new(paths, timestamps_s, poses)?, names })
 }
 
 /// The Velodyne-to-camera-0 transform `Tr` of a KITTI odometry calib.txt (line `Tr:` or
