@@ -391,10 +391,12 @@ fn check_batch(b: usize, batch: &arrow_ipc::RecordBatch<'_>, columns: usize, bod
             decompressed += len as u64;
             continue;
         }
-        // A compressed buffer starts with its uncompressed length (int64), then the LZ4 frame.
-        let Some(prefix) = body.get(offset..offset + 8) else {
+        // A compressed buffer starts with its uncompressed length (int64), then the LZ4 frame;
+        // the buffer lies inside the body (checked above), so its first 8 bytes do too.
+        if len < 8 {
             return Err(bad(format!("compressed buffer {i} has {len} bytes, fewer than its 8-byte length prefix")));
-        };
+        }
+        let prefix = &body[offset..offset + 8];
         let declared = i64::from_le_bytes(prefix.try_into().expect("8 bytes"));
         if declared == LENGTH_NO_COMPRESSED_DATA {
             decompressed += len as u64 - 8;

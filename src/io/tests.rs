@@ -1172,6 +1172,15 @@ mod feather_sweeps {
     }
 
     #[test]
+    fn a_compressed_buffer_shorter_than_its_length_prefix_is_an_error() {
+        // Found by the fuzzer (a compressed buffer of fewer than 8 bytes inside the body made the
+        // size check underflow); kept in its corpus too.
+        let bytes = include_bytes!("../../fuzz/corpus/feather/regression-short-compressed-buffer");
+        let err = read_points(bytes, Some("x.feather")).unwrap_err();
+        assert!(err.to_string().contains("length prefix"), "{err}");
+    }
+
+    #[test]
     fn numeric_columns_read_as_floats_and_exact_integers() {
         let poses = [[1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, -2.0, 0.0, 0.0, 1.0, 0.25, 0.0, 0.0, 0.0, 1.0]];
         let timestamps_ns = [315_966_265_659_927_001i64];
