@@ -224,6 +224,16 @@ pub enum StoreError {
     /// Another process is using the data directory.
     #[error("{0}")]
     InUse(String),
+    /// The PostgreSQL database failed (the fleet's store, [`PgStore`](self)).
+    #[error("postgres: {0}")]
+    Postgres(String),
+    /// The object store (local directory or S3) failed.
+    #[error("object store: {0}")]
+    Object(String),
+    /// The worker no longer holds the job: its lease expired and the job went back to the
+    /// queue (another worker may be running it now). The worker stops without recording.
+    #[error("lease lost: {0}")]
+    LeaseLost(String),
 }
 
 /// Receives the frames of a sequence being uploaded, in order. Dropping it without
