@@ -5,6 +5,7 @@
 //! reports progress through a callback which may also cancel between iterations.
 
 pub mod bodies;
+pub mod checkpoint;
 pub mod nsfp;
 pub mod ntp;
 pub mod prepare;
@@ -185,6 +186,7 @@ pub(crate) fn fit_single(
     sequence: &Sequence,
     method: Method,
     params: &ValidFitParams,
+    checkpoints: &mut dyn checkpoint::Checkpoints,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
     validate_sequence(sequence)?;
@@ -204,8 +206,9 @@ pub(crate) fn fit_single(
         on_progress(p)
     };
     let model = if method.is_trajectory() {
-        let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), &mut on_iteration)?;
-        report.losses = losses.into_records();
+        let fit = ntp::fit_trajectory(&frames, params, method.uses_rigidity(), checkpoints, &mut on_iteration)?;
+        // The fit's own curve: it holds the iterations before a checkpoint it went on from.
+        report.losses = fit.losses.into_records();
         report.iterations = fit.iterations;
         report.best_iteration = Some(fit.best_iteration);
         report.best_validation_loss = Some(fit.best_validation_loss);

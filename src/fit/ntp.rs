@@ -13,12 +13,14 @@ use rand_chacha::ChaCha8Rng;
 
 use std::time::Instant;
 
+use super::checkpoint::{Checkpoints, Scalars, TrajectoryState, fingerprint};
 use super::prepare::{PointSet, PreparedFrame};
 use super::rigidity::ClusterRigidity;
 use super::{FitError, LossTerms, PhaseTimes, Progress, ValidFitParams};
 use crate::geometry::Point;
 use crate::losses::chamfer::{ChamferScratch, truncated_chamfer};
 use crate::losses::cycle::mean_squared_difference;
+use crate::model::LossCurve;
 use crate::model::encoding::{encode_points, input_width};
 use crate::nn::adam::step_lr;
 use crate::nn::{Adam, Gradients, Mlp, Workspace};
@@ -41,8 +43,10 @@ pub struct TrajectoryFit {
     pub best_iteration: usize,
     /// Its validation loss.
     pub best_validation_loss: f64,
-    /// Where the time went.
+    /// Where the time went (of this run: a fit that went on from a checkpoint counts from it).
     pub times: PhaseTimes,
+    /// The loss curve of every iteration, those before a checkpoint this run went on from too.
+    pub losses: LossCurve,
 }
 
 /// Reusable buffers of one reference-frame evaluation; sized on first use, then reused.
@@ -321,11 +325,30 @@ fn move_points(x: &[Point], velocities: &[f32], width: usize, from: usize, to: u
     }));
 }
 
+/// Identifies a trajectory fit for its checkpoints: parameters, method and every frame's
+/// validation points, bit for bit.
+fn fit_fingerprint(frames: &[PreparedFrame], params: &ValidFitParams, rigidity: bool) -> u64 {
+    let params_json = serde_json::to_vec(params).expect("plain data always serialises");
+    let points: Vec<u8> = frames
+        .iter()
+        .flat_map(|f| {
+            let part = &f.part(0).points;
+            (part.len() as u64).to_le_bytes().into_iter().chain(part.iter().flatten().flat_map(|c| c.to_le_bytes()))
+        })
+        .collect();
+    fingerprint(&[&params_json, &[u8::from(rigidity)], &points])
+}
+
 /// Fits a trajectory network to prepared frames. `rigidity` selects MBNT (true) or NTP.
+///
+/// At the start of a validation iteration for which `checkpoints` says a checkpoint is due,
+/// the whole state of the fit is kept there; a fit that finds a checkpoint of the same fit
+/// there goes on from it, and ends with the same bits as one that never stopped.
 pub fn fit_trajectory(
     frames: &[PreparedFrame],
     params: &ValidFitParams,
     rigidity: bool,
+    checkpoints: &mut dyn Checkpoints,
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<TrajectoryFit, FitError> {
     let t_count = frames.len();
@@ -347,12 +370,63 @@ pub fn fit_trajectory(
     let mut restarts = 0;
     // Halves at each collapse restart; multiplies the scheduled learning rate.
     let mut lr_scale = 1.0f32;
-    let mut iterations_run = 0;
+    let mut losses = LossCurve::default();
+    let mut first_iteration = 0;
+    let fit_id = fit_fingerprint(frames, params, rigidity);
+    if let Some(bytes) = checkpoints.latest() {
+        match TrajectoryState::from_bytes(&bytes) {
+            Ok(state)
+                if state.scalars.fingerprint == fit_id
+                    && state.mlp.dims() == dims
+                    && state.scalars.next_iteration < params.iterations
+                    && state.scalars.rng_word_pos.parse::<u128>().is_ok() =>
+            {
+                let s = state.scalars;
+                rng.set_word_pos(s.rng_word_pos.parse::<u128>().expect("checked above"));
+                mlp = state.mlp;
+                adam = state.adam;
+                best = match (s.best, state.best_mlp) {
+                    (Some((loss, iteration)), Some(net)) => Some((loss, iteration, net)),
+                    _ => None,
+                };
+                validations_since_best = s.validations_since_best;
+                restarts = s.restarts;
+                lr_scale = s.lr_scale;
+                losses = s.losses;
+                first_iteration = s.next_iteration;
+                tracing::info!(iteration = first_iteration, "going on from a checkpoint");
+                checkpoints.resumed(first_iteration);
+            }
+            Ok(_) => tracing::warn!("a checkpoint of another fit was found and ignored"),
+            Err(e) => tracing::warn!(error = %e, "a damaged checkpoint was found and ignored"),
+        }
+    }
+    let mut iterations_run = first_iteration;
     let started = Instant::now();
 
-    for iteration in 0..params.iterations {
-        adam.set_lr(lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
+    for iteration in first_iteration..params.iterations {
         let validation = iteration % params.validate_every == 0;
+        if validation && iteration > first_iteration && checkpoints.due() {
+            let state = TrajectoryState {
+                scalars: Scalars {
+                    fingerprint: fit_id,
+                    next_iteration: iteration,
+                    adam_steps: adam.steps(),
+                    adam_lr: adam.lr(),
+                    rng_word_pos: rng.get_word_pos().to_string(),
+                    best: best.as_ref().map(|(loss, at, _)| (*loss, *at)),
+                    validations_since_best,
+                    restarts,
+                    lr_scale,
+                    losses: losses.clone(),
+                },
+                mlp: mlp.clone(),
+                adam: adam.clone(),
+                best_mlp: best.as_ref().map(|(_, _, net)| net.clone()),
+            };
+            checkpoints.keep(&state.to_bytes());
+        }
+        adam.set_lr(lr_scale * step_lr(params.learning_rate, iteration, params.lr_halve_every));
         references.clear();
         if validation {
             references.extend(0..t_count);
@@ -439,6 +513,7 @@ pub fn fit_trajectory(
             rigid_tracks: None,
             window: None,
         };
+        losses.push(progress.iteration, progress.loss, progress.validation_loss);
         tracing::debug!(iteration, loss = progress.loss.total, "trajectory iteration");
         if on_progress(&progress).is_break() {
             return Err(FitError::Cancelled { iteration: iteration + 1 });
@@ -451,5 +526,5 @@ pub fn fit_trajectory(
     let (best_validation_loss, best_iteration, mlp) = best.expect("iteration 0 always validates");
     let mut times = scratch.times;
     times.total_s = started.elapsed().as_secs_f64();
-    Ok(TrajectoryFit { mlp, iterations: iterations_run, best_iteration, best_validation_loss, times })
+    Ok(TrajectoryFit { mlp, iterations: iterations_run, best_iteration, best_validation_loss, times, losses })
 }

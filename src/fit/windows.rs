@@ -25,6 +25,7 @@
 
 use std::ops::ControlFlow;
 
+use super::checkpoint::Checkpoints;
 use super::{FitError, FrameSource, Progress, Sequence, fit_coordinates, fit_single, validate_log};
 use crate::model::FittedModel;
 use crate::model::params::{Method, ValidFitParams};
@@ -53,6 +54,45 @@ pub trait FinishedWindows {
     fn take(&mut self, first_frame: usize, frames: usize) -> Option<FittedModel>;
     /// Keeps the model of the window of `frames` frames from `first_frame`, just fitted.
     fn keep(&mut self, first_frame: usize, frames: usize, model: &FittedModel);
+    /// Whether a mid-fit checkpoint should be taken now ([`Checkpoints::due`]).
+    fn checkpoint_due(&mut self) -> bool {
+        false
+    }
+    /// The latest mid-fit checkpoint of the window, kept by an earlier run.
+    fn checkpoint(&mut self, first_frame: usize, frames: usize) -> Option<Vec<u8>> {
+        let _ = (first_frame, frames);
+        None
+    }
+    /// Keeps a mid-fit checkpoint of the window, replacing the previous one.
+    fn keep_checkpoint(&mut self, first_frame: usize, frames: usize, bytes: &[u8]) {
+        let _ = (first_frame, frames, bytes);
+    }
+    /// Told when the window's fit goes on from its checkpoint, at `iteration`.
+    fn resumed(&mut self, first_frame: usize, frames: usize, iteration: usize) {
+        let _ = (first_frame, frames, iteration);
+    }
+}
+
+/// The [`Checkpoints`] of one window, kept by a [`FinishedWindows`].
+struct WindowCheckpoints<'a> {
+    finished: &'a mut dyn FinishedWindows,
+    first_frame: usize,
+    frames: usize,
+}
+
+impl Checkpoints for WindowCheckpoints<'_> {
+    fn due(&mut self) -> bool {
+        self.finished.checkpoint_due()
+    }
+    fn latest(&mut self) -> Option<Vec<u8>> {
+        self.finished.checkpoint(self.first_frame, self.frames)
+    }
+    fn keep(&mut self, bytes: &[u8]) {
+        self.finished.keep_checkpoint(self.first_frame, self.frames, bytes);
+    }
+    fn resumed(&mut self, iteration: usize) {
+        self.finished.resumed(self.first_frame, self.frames, iteration);
+    }
 }
 
 /// Keeps nothing: every window is fitted.
@@ -102,9 +142,11 @@ pub fn fit_log(
     on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
 ) -> Result<FittedModel, FitError> {
     if !is_windowed(sequence, params) {
+        let frames = sequence.frame_count();
+        let mut checkpoints = WindowCheckpoints { finished, first_frame: 0, frames };
         return match sequence.in_memory() {
-            Some(all) => fit_single(all, method, params, on_progress),
-            None => fit_single(&sequence.part(0..sequence.frame_count())?, method, params, on_progress),
+            Some(all) => fit_single(all, method, params, &mut checkpoints, on_progress),
+            None => fit_single(&sequence.part(0..frames)?, method, params, &mut checkpoints, on_progress),
         };
     }
     validate_log(sequence)?;
@@ -154,7 +196,8 @@ pub fn fit_log(
             timestamps_s: sequence.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
             poses: world.as_ref().map(|poses| poses[range].to_vec()),
         };
-        let model = fit_single(&part, method, &window_params, &mut |p: &Progress| {
+        let mut checkpoints = WindowCheckpoints { finished: &mut *finished, first_frame: start, frames: params.window_frames };
+        let model = fit_single(&part, method, &window_params, &mut checkpoints, &mut |p: &Progress| {
             on_progress(&Progress { window: Some(position), ..p.clone() })
         })?;
         finished.keep(start, params.window_frames, &model);

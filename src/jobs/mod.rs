@@ -22,7 +22,7 @@ use crate::fit::{FitError, FrameSource, Method, Progress, Sequence, ValidFitPara
 use crate::model::FittedModel;
 use crate::store::{CancelOutcome, JobProgress, JobRecord, JobStatus, Store, StoreError, now_ms};
 
-pub use worker::{Worker, WorkerPool};
+pub use worker::{Worker, WorkerPool, worker_name};
 
 /// Runs one fit. The default is the numerical core ([`CoreFitter`]); the seam lets a worker
 /// run fits elsewhere (another process or machine) and lets tests slow a fit down.
@@ -136,9 +136,28 @@ impl FitStats {
     }
 }
 
+/// How workers hold their jobs and keep checkpoints.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WorkerSettings {
+    /// How long a claim holds without a renewal; a worker renews it every third of that
+    /// (`MBNT_LEASE_S`). A worker that dies loses its job to the queue this long after.
+    pub lease: Duration,
+    /// A job whose worker died this many times fails instead of running again.
+    pub max_attempts: u32,
+    /// Least time between two mid-fit checkpoints (taken at validation iterations).
+    pub checkpoint_every: Duration,
+}
+
+impl Default for WorkerSettings {
+    fn default() -> Self {
+        Self { lease: Duration::from_secs(30), max_attempts: 3, checkpoint_every: Duration::from_secs(30) }
+    }
+}
+
 /// Submits, cancels and observes jobs; shared by the HTTP handlers and the workers.
 pub struct JobQueue {
     store: Arc<dyn Store>,
+    settings: WorkerSettings,
     wake: Wake,
     /// Cancel flags of the fits running in this process.
     running: Mutex<HashMap<Uuid, Arc<AtomicBool>>>,
@@ -154,10 +173,16 @@ impl std::fmt::Debug for JobQueue {
 }
 
 impl JobQueue {
-    /// A queue over `store`.
+    /// A queue over `store`, with the default [`WorkerSettings`].
     pub fn new(store: Arc<dyn Store>) -> Arc<Self> {
+        Self::with_settings(store, WorkerSettings::default())
+    }
+
+    /// A queue over `store` whose workers hold jobs as `settings` say.
+    pub fn with_settings(store: Arc<dyn Store>, settings: WorkerSettings) -> Arc<Self> {
         Arc::new(Self {
             store,
+            settings,
             wake: Wake::default(),
             running: Mutex::default(),
             watchers: Mutex::default(),
@@ -168,6 +193,11 @@ impl JobQueue {
     /// The store behind the queue.
     pub fn store(&self) -> &Arc<dyn Store> {
         &self.store
+    }
+
+    /// How the queue's workers hold jobs.
+    pub fn settings(&self) -> &WorkerSettings {
+        &self.settings
     }
 
     /// Fit throughput counters.
@@ -187,6 +217,8 @@ impl JobQueue {
             error: None,
             cancel_requested: false,
             attempts: 0,
+            worker: None,
+            lease_expires_at_ms: None,
             created_at_ms: now_ms(),
             started_at_ms: None,
             finished_at_ms: None,

@@ -4,7 +4,7 @@
 use std::ops::ControlFlow;
 use std::panic::AssertUnwindSafe;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -15,7 +15,7 @@ use crate::fit::windows::FinishedWindows;
 use crate::fit::{FitError, FrameSource, Progress};
 use crate::geometry::Point;
 use crate::model::FittedModel;
-use crate::store::{JobOutcome, JobProgress, JobRecord, StoreError};
+use crate::store::{Claim, JobOutcome, JobProgress, JobRecord, LeaseStatus, StoreError};
 
 /// How often a running job's progress is written to the store.
 const PERSIST_EVERY: Duration = Duration::from_secs(1);
@@ -24,9 +24,23 @@ const PUBLISH_EVERY: Duration = Duration::from_millis(100);
 /// How long an idle worker sleeps before looking at the queue again without being woken.
 const IDLE_POLL: Duration = Duration::from_millis(500);
 
+/// A name for the next worker of this process, unique among live workers of a fleet:
+/// `host:pid:n`.
+pub fn worker_name() -> String {
+    static NEXT: AtomicUsize = AtomicUsize::new(0);
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "localhost".into());
+    format!("{host}:{}:{}", std::process::id(), NEXT.fetch_add(1, Ordering::Relaxed))
+}
+
 /// Runs jobs one at a time. [`WorkerPool`] drives several on threads; tests call
 /// [`Worker::try_execute_next`] directly.
 pub struct Worker {
+    name: String,
     queue: Arc<JobQueue>,
     fitter: Arc<dyn Fitter>,
     pool: rayon::ThreadPool,
@@ -53,13 +67,22 @@ impl Worker {
             .thread_name(|i| format!("mbnt-fit-{i}"))
             .build()
             .context("creating a fit thread pool")?;
-        Ok(Self { queue, fitter, pool, shutdown })
+        Ok(Self { name: worker_name(), queue, fitter, pool, shutdown })
     }
 
-    /// Claims the oldest queued job and runs it to its end; returns its final state, or
-    /// `None` when the queue was empty. Blocking (for as long as the fit takes).
+    /// The name the worker claims jobs under.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Claims the oldest queued job (or one whose worker died) and runs it to its end; returns
+    /// its final state, or `None` when the queue was empty. Blocking (for as long as the fit
+    /// takes).
     pub fn try_execute_next(&self) -> Result<Option<JobRecord>, StoreError> {
-        let Some(job) = self.queue.store.claim_next_job()? else {
+        let settings = &self.queue.settings;
+        let claim =
+            Claim { worker: self.name.clone(), lease: settings.lease, max_attempts: settings.max_attempts };
+        let Some(job) = self.queue.store.claim_next_job(&claim)? else {
             return Ok(None);
         };
         let id = job.id;
@@ -71,23 +94,87 @@ impl Worker {
         Ok(Some(done))
     }
 
-    #[tracing::instrument(skip_all, fields(job_id = %job.id, method = job.method.name()))]
-    fn execute(&self, mut job: JobRecord, cancel: &AtomicBool) -> Result<JobRecord, StoreError> {
+    #[tracing::instrument(skip_all, fields(job_id = %job.id, method = job.method.name(), worker = %self.name))]
+    fn execute(&self, job: JobRecord, cancel: &AtomicBool) -> Result<JobRecord, StoreError> {
+        // The lease is renewed beside the fit, so that a long step without progress reports
+        // (odometry, body search, a slow store) does not lose it.
+        let lost = AtomicBool::new(false);
+        let done = AtomicBool::new(false);
+        let store = &*self.queue.store;
+        let lease = self.queue.settings.lease;
+        std::thread::scope(|scope| {
+            let heartbeat = scope.spawn(|| {
+                while !done.load(Ordering::Relaxed) {
+                    std::thread::park_timeout(lease / 3);
+                    if done.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    match store.renew_lease(job.id, &self.name, lease) {
+                        Ok(LeaseStatus::Held { cancel_requested }) => {
+                            if cancel_requested {
+                                cancel.store(true, Ordering::Relaxed);
+                            }
+                        }
+                        Ok(LeaseStatus::Lost) => {
+                            lost.store(true, Ordering::Relaxed);
+                            break;
+                        }
+                        // The lease may still hold; the next renewal tells.
+                        Err(e) => tracing::warn!(error = %e, "could not renew the job's lease"),
+                    }
+                }
+            });
+            let result = self.run(job.clone(), cancel, &lost);
+            done.store(true, Ordering::Relaxed);
+            heartbeat.thread().unpark();
+            match result {
+                Err(StoreError::LeaseLost(why)) => Err(StoreError::LeaseLost(why)),
+                other => other,
+            }
+        })
+        .or_else(|e| match e {
+            StoreError::LeaseLost(why) => {
+                tracing::warn!(%why, "the job's lease was lost (this worker was too slow to renew it); another worker may hold it, and this run records nothing");
+                Ok(store.get_job(job.id)?.unwrap_or(job))
+            }
+            e => Err(e),
+        })
+    }
+
+    /// One run of a claimed job; [`StoreError::LeaseLost`] once the lease is gone.
+    fn run(&self, mut job: JobRecord, cancel: &AtomicBool, lost: &AtomicBool) -> Result<JobRecord, StoreError> {
         tracing::info!(attempt = job.attempts, "fit started");
         let store = self.queue.store.clone();
+        let worker = self.name.as_str();
+        let job_id = job.id;
+        let lease_lost = || StoreError::LeaseLost(format!("job {job_id} is no longer held by {worker}"));
         job.progress = JobProgress { iterations: job.params.iterations, ..JobProgress::default() };
-        store.update_progress(job.id, &job.progress)?;
+        if store.update_progress(job.id, worker, &job.progress)? == LeaseStatus::Lost {
+            return Err(lease_lost());
+        }
         self.queue.publish(&job);
         let sequence = match StoredFrames::open(&*store, &job) {
             Ok(s) => s,
             Err(e) => {
                 tracing::error!(error = %e, "could not load the job's sequence");
-                return store
-                    .finish_job(job.id, JobOutcome::Failed { error: format!("could not load the sequence: {e}") });
+                return store.finish_job(
+                    job.id,
+                    worker,
+                    JobOutcome::Failed { error: format!("could not load the sequence: {e}") },
+                );
             }
         };
         let (method, params) = (job.method, job.params.clone());
-        let mut finished = StoredWindows { store: &*store, job: job.id };
+        // usize::MAX until the fit goes on from a checkpoint (an atomic: the fit runs on the pool).
+        let resumed_from = AtomicUsize::new(usize::MAX);
+        let resumed = || Some(resumed_from.load(Ordering::Relaxed)).filter(|&i| i != usize::MAX);
+        let mut finished = StoredWindows {
+            store: &*store,
+            job: job.id,
+            checkpoint_every: self.queue.settings.checkpoint_every,
+            last_checkpoint: Instant::now(),
+            resumed_from: &resumed_from,
+        };
         let started = Instant::now();
         let mut last_persist = started;
         let mut last_publish = started;
@@ -102,7 +189,9 @@ impl Worker {
                 window_clock = (window, Instant::now());
             }
             let elapsed_s = window_clock.1.elapsed().as_secs_f64();
-            let rate = if elapsed_s > 0.0 { p.iteration as f64 / elapsed_s } else { 0.0 };
+            // A run that went on from a checkpoint did only the iterations since.
+            let done_here = p.iteration.saturating_sub(resumed().unwrap_or(0));
+            let rate = if elapsed_s > 0.0 { done_here as f64 / elapsed_s } else { 0.0 };
             self.queue.stats.record(job.id, rate);
             let window_fraction =
                 if p.iterations > 0 { (p.iteration as f64 / p.iterations as f64).min(1.0) } else { 0.0 };
@@ -121,6 +210,7 @@ impl Worker {
                 eta_s,
                 rigid_tracks: p.rigid_tracks,
                 window: p.window,
+                resumed_from_iteration: resumed(),
             };
             let now = Instant::now();
             // The last iteration is stored at once; the rigid-track steps after it (which repeat its
@@ -130,9 +220,10 @@ impl Worker {
             let new_window = p.window.is_some_and(|w| w.window > 0) && p.iteration == 1;
             if now - last_persist >= PERSIST_EVERY || last_iteration || new_window {
                 last_persist = now;
-                match store.update_progress(job.id, &job.progress) {
-                    Ok(true) => cancel.store(true, Ordering::Relaxed),
-                    Ok(false) => {}
+                match store.update_progress(job.id, worker, &job.progress) {
+                    Ok(LeaseStatus::Held { cancel_requested: true }) => cancel.store(true, Ordering::Relaxed),
+                    Ok(LeaseStatus::Held { cancel_requested: false }) => {}
+                    Ok(LeaseStatus::Lost) => lost.store(true, Ordering::Relaxed),
                     // Keep fitting: progress is advisory, and the outcome is retried below.
                     Err(e) => store_error = Some(e),
                 }
@@ -141,7 +232,8 @@ impl Worker {
                 last_publish = now;
                 self.queue.publish(&job);
             }
-            if cancel.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed) {
+            if cancel.load(Ordering::Relaxed) || lost.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed)
+            {
                 ControlFlow::Break(())
             } else {
                 ControlFlow::Continue(())
@@ -155,13 +247,16 @@ impl Worker {
         if let Some(e) = store_error {
             tracing::warn!(error = %e, "progress could not be stored during the fit");
         }
+        if lost.load(Ordering::Relaxed) {
+            return Err(lease_lost());
+        }
         let outcome = match result {
             // Only a model that loads and answers makes a job succeed: one holding a non-finite
             // number fails it, naming the part, instead of failing every later query.
             Ok(Ok(model)) => match model.to_bytes() {
                 Ok(bytes) => {
                     tracing::info!(seconds = started.elapsed().as_secs_f64(), "fit succeeded");
-                    return store.finish_job(job.id, JobOutcome::Succeeded { model: &bytes });
+                    return store.finish_job(job.id, worker, JobOutcome::Succeeded { model: &bytes });
                 }
                 Err(e) => {
                     tracing::error!(error = %e, "the fitted model holds a non-finite number");
@@ -170,7 +265,7 @@ impl Worker {
             },
             Ok(Err(FitError::Cancelled { iteration })) if !cancel.load(Ordering::Relaxed) => {
                 tracing::info!(iteration, "fit interrupted by shutdown; the job goes back to the queue");
-                return store.requeue_job(job.id);
+                return store.requeue_job(job.id, worker);
             }
             Ok(Err(FitError::Cancelled { iteration })) => {
                 tracing::info!(iteration, "fit cancelled");
@@ -190,21 +285,31 @@ impl Worker {
                 JobOutcome::Failed { error: "internal error: the fit stopped unexpectedly".into() }
             }
         };
-        store.finish_job(job.id, outcome)
+        store.finish_job(job.id, worker, outcome)
     }
 }
 
-/// The finished windows of one job, kept in the store (`windows/{job}/` of the data directory)
-/// until the job finishes, so that a job run again after a shutdown or a crash skips them. A
-/// kept window that cannot be read or written is fitted again: keeping them saves time only.
+/// The finished windows and the latest mid-fit checkpoint of one job, kept in the store
+/// (`windows/{job}/` of the data directory, or of the object store) until the job finishes, so
+/// that a job run again after a shutdown or a crash, on this worker or another, skips them. A
+/// kept window or checkpoint that cannot be read or written is fitted again: keeping them
+/// saves time only.
 struct StoredWindows<'a> {
     store: &'a dyn crate::store::Store,
     job: uuid::Uuid,
+    checkpoint_every: Duration,
+    last_checkpoint: Instant,
+    /// Set when a window's fit goes on from a checkpoint: the iteration it went on from.
+    resumed_from: &'a AtomicUsize,
 }
 
 impl StoredWindows<'_> {
     fn key(first_frame: usize, frames: usize) -> String {
         format!("{first_frame}-{frames}")
+    }
+
+    fn checkpoint_key(first_frame: usize, frames: usize) -> String {
+        format!("checkpoint-{first_frame}-{frames}")
     }
 }
 
@@ -233,6 +338,28 @@ impl FinishedWindows for StoredWindows<'_> {
         if let Err(e) = self.store.put_window_model(self.job, &Self::key(first_frame, frames), &bytes) {
             tracing::warn!(error = %e, first_frame, "could not keep a finished window");
         }
+    }
+
+    fn checkpoint_due(&mut self) -> bool {
+        self.last_checkpoint.elapsed() >= self.checkpoint_every
+    }
+
+    fn checkpoint(&mut self, first_frame: usize, frames: usize) -> Option<Vec<u8>> {
+        self.store.read_window_model(self.job, &Self::checkpoint_key(first_frame, frames)).unwrap_or_else(|e| {
+            tracing::warn!(error = %e, first_frame, "could not read a checkpoint; fitting from the start");
+            None
+        })
+    }
+
+    fn keep_checkpoint(&mut self, first_frame: usize, frames: usize, bytes: &[u8]) {
+        self.last_checkpoint = Instant::now();
+        if let Err(e) = self.store.put_window_model(self.job, &Self::checkpoint_key(first_frame, frames), bytes) {
+            tracing::warn!(error = %e, first_frame, "could not keep a checkpoint");
+        }
+    }
+
+    fn resumed(&mut self, _first_frame: usize, _frames: usize, iteration: usize) {
+        self.resumed_from.store(iteration, Ordering::Relaxed);
     }
 }
 

@@ -88,7 +88,7 @@ pub struct LossRecord {
 /// every other record is dropped and only every second iteration of those kept before is
 /// recorded from then on, so a curve of any length keeps its shape in bounded memory (and in
 /// the model file).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LossCurve {
     /// Iterations 1, 1 + stride, 1 + 2 stride, ... are kept.
     stride: usize,

@@ -56,6 +56,17 @@ impl<T: Scalar> Adam<T> {
         self.steps
     }
 
+    /// The first and second moments, one per parameter (for a checkpoint).
+    pub fn moments(&self) -> (&[T], &[T]) {
+        (&self.m, &self.v)
+    }
+
+    /// State taken from a checkpoint: moments `m` and `v` after `steps` steps, learning rate
+    /// `lr`. `None` when the moments' lengths differ.
+    pub fn from_moments(lr: f32, m: Vec<T>, v: Vec<T>, steps: u64) -> Option<Self> {
+        (m.len() == v.len()).then_some(Self { lr, m, v, steps })
+    }
+
     /// One update of `mlp`'s parameters from `grads` (the gradient of the loss to minimise).
     ///
     /// # Panics

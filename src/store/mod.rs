@@ -125,6 +125,11 @@ pub struct JobProgress {
     /// then the whole log's (absent in records written before the field existed).
     #[serde(default)]
     pub window: Option<WindowProgress>,
+    /// The iteration this run of the job went on from: the checkpoint an earlier run (its
+    /// worker stopped or died) left of the window being fitted; `None` when it started from
+    /// iteration 0.
+    #[serde(default)]
+    pub resumed_from_iteration: Option<usize>,
 }
 
 /// A job: one fit of one method to one sequence.
@@ -146,8 +151,14 @@ pub struct JobRecord {
     pub error: Option<String>,
     /// A user asked to cancel the running job; its worker stops at the next iteration.
     pub cancel_requested: bool,
-    /// How many times a worker has started the job (more than 1 after a restart).
+    /// How many runs of the job a worker started and did not hand back (a run interrupted by
+    /// its worker's orderly shutdown gives its attempt back; one whose worker died does not).
     pub attempts: u32,
+    /// The worker process holding the job while it runs (see [`Claim::worker`]).
+    pub worker: Option<String>,
+    /// When the holder's lease ends unless it is renewed, ms since the Unix epoch (by the
+    /// database's clock): after it, any worker may claim the job again.
+    pub lease_expires_at_ms: Option<i64>,
     /// Creation time, ms since the Unix epoch.
     pub created_at_ms: i64,
     /// When the current (or last) run started, ms since the Unix epoch.
@@ -182,6 +193,30 @@ pub struct JobFilter {
     pub sequence_id: Option<Uuid>,
     /// At most this many.
     pub limit: usize,
+}
+
+/// Who claims a job, and on which terms ([`Store::claim_next_job`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Claim {
+    /// The claiming worker's name, unique among live workers (`host:pid:thread`).
+    pub worker: String,
+    /// How long the claim holds without a renewal ([`Store::renew_lease`]).
+    pub lease: std::time::Duration,
+    /// A job whose lease expired this many times (attempts) fails instead of running again.
+    pub max_attempts: u32,
+}
+
+/// Whether a worker still holds its job ([`Store::renew_lease`], [`Store::update_progress`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LeaseStatus {
+    /// The worker holds the job; `cancel_requested` when a user asked to cancel it.
+    Held {
+        /// A user asked to cancel the job.
+        cancel_requested: bool,
+    },
+    /// The job is no longer this worker's (its lease expired and the job went back to the
+    /// queue, or it was deleted): the worker stops at once and records nothing.
+    Lost,
 }
 
 /// What [`Store::delete_sequence`] did.
@@ -267,28 +302,37 @@ pub trait Store: Send + Sync + 'static {
     fn get_job(&self, id: Uuid) -> Result<Option<JobRecord>, StoreError>;
     /// Jobs matching `filter`, newest first.
     fn list_jobs(&self, filter: &JobFilter) -> Result<Vec<JobRecord>, StoreError>;
-    /// Atomically moves the oldest queued job to `running` and returns it.
-    fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError>;
-    /// Records a running job's progress; returns whether a user asked to cancel it.
-    fn update_progress(&self, id: Uuid, progress: &JobProgress) -> Result<bool, StoreError>;
-    /// Records how a running job's run ended (the model first, durably, then the status).
-    fn finish_job(&self, id: Uuid, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError>;
+    /// Atomically gives `claim.worker` the oldest job that is queued, or running under a lease
+    /// that has expired (its worker died), as `running` under a lease of `claim.lease`, and
+    /// counts an attempt. A job whose lease expired after `claim.max_attempts` attempts is
+    /// failed, saying so, instead. Two workers never both hold a job.
+    fn claim_next_job(&self, claim: &Claim) -> Result<Option<JobRecord>, StoreError>;
+    /// Extends `worker`'s lease on job `id` to `lease` from now, if it still holds it.
+    fn renew_lease(&self, id: Uuid, worker: &str, lease: std::time::Duration) -> Result<LeaseStatus, StoreError>;
+    /// Records a running job's progress, if `worker` still holds it.
+    fn update_progress(&self, id: Uuid, worker: &str, progress: &JobProgress) -> Result<LeaseStatus, StoreError>;
+    /// Records how `worker`'s run of a job ended (the model first, durably, then the status).
+    /// [`StoreError::LeaseLost`] when the worker no longer holds the job (nothing recorded).
+    fn finish_job(&self, id: Uuid, worker: &str, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError>;
     /// Marks a succeeded job failed with `error`, because a stored file its answers need (its
     /// model, its sequence's frames) cannot be read. A job in another state is left as it is.
     /// Returns the job, `None` when it does not exist.
     fn fail_succeeded_job(&self, id: Uuid, error: &str) -> Result<Option<JobRecord>, StoreError>;
-    /// Puts a running job back in the queue (its process is stopping before the fit ended).
-    fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError>;
+    /// Puts `worker`'s running job back in the queue, giving its attempt back (its process is
+    /// stopping in order before the fit ended). [`StoreError::LeaseLost`] when the worker no
+    /// longer holds it.
+    fn requeue_job(&self, id: Uuid, worker: &str) -> Result<JobRecord, StoreError>;
     /// Cancels a queued job, or asks the worker of a running one to stop.
     fn request_cancel(&self, id: Uuid) -> Result<CancelOutcome, StoreError>;
-    /// Puts every `running` job back in the queue: called once at startup, when no worker of
-    /// this store can be running (their process died). Returns how many were re-queued.
+    /// Puts back in the queue every `running` job whose worker is known to be gone: for the
+    /// embedded store (one process owns it) every running job at startup; for a shared store
+    /// those whose lease has expired. Returns how many were re-queued.
     fn requeue_running_jobs(&self) -> Result<usize, StoreError>;
     /// The serialised model of a succeeded job.
     fn read_model(&self, job_id: Uuid) -> Result<Vec<u8>, StoreError>;
     /// Keeps the model of a finished window (`key`: letters, digits and `-`) of a running job
-    /// fitted as windows, so that the job, run again after a restart, need not fit it again.
-    /// Removed when the job finishes.
+    /// fitted as windows, or a mid-fit checkpoint, so that the job, run again after a restart
+    /// or on another worker, need not fit it again. Removed when the job finishes.
     fn put_window_model(&self, job_id: Uuid, key: &str, model: &[u8]) -> Result<(), StoreError>;
     /// A window model kept by [`Store::put_window_model`] for this job, if any.
     fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError>;

@@ -12,14 +12,14 @@ use uuid::Uuid;
 
 use super::files::{self, DataDir};
 use super::{
-    CancelOutcome, DeleteOutcome, FrameSink, JobFilter, JobOutcome, JobProgress, JobRecord, JobStatus, SequenceMeta,
+    CancelOutcome, Claim, DeleteOutcome, LeaseStatus, FrameSink, JobFilter, JobOutcome, JobProgress, JobRecord, JobStatus, SequenceMeta,
     SequenceRecord, Store, StoreError, now_ms,
 };
 use crate::fit::Method;
 use crate::geometry::Point;
 
-/// Schema version stored in `PRAGMA user_version`.
-const SCHEMA_VERSION: i64 = 1;
+/// Schema version stored in `PRAGMA user_version` (2: a running job's worker and lease).
+const SCHEMA_VERSION: i64 = 2;
 
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS sequences (
@@ -42,14 +42,22 @@ CREATE TABLE IF NOT EXISTS jobs (
     attempts INTEGER NOT NULL DEFAULT 0,
     created_at INTEGER NOT NULL,
     started_at INTEGER,
-    finished_at INTEGER
+    finished_at INTEGER,
+    worker TEXT,
+    lease_expires_at INTEGER
 );
 CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status);
 CREATE INDEX IF NOT EXISTS jobs_by_sequence ON jobs (sequence_id);
 ";
 
+/// What version 1 (no leases) needs to become version 2.
+const MIGRATE_1_TO_2: &str = "
+ALTER TABLE jobs ADD COLUMN worker TEXT;
+ALTER TABLE jobs ADD COLUMN lease_expires_at INTEGER;
+";
+
 const JOB_COLUMNS: &str = "id, sequence_id, method, params, status, progress, error, cancel_requested, attempts, \
-                           created_at, started_at, finished_at";
+                           created_at, started_at, finished_at, worker, lease_expires_at";
 
 struct Inner {
     conn: Mutex<Connection>,
@@ -102,6 +110,9 @@ impl SqliteStore {
             return Err(StoreError::Corrupt(format!(
                 "database schema version {version} is newer than this program's ({SCHEMA_VERSION})"
             )));
+        }
+        if version == 1 {
+            conn.execute_batch(MIGRATE_1_TO_2)?;
         }
         conn.execute_batch(SCHEMA)?;
         conn.execute_batch(&format!("PRAGMA user_version = {SCHEMA_VERSION};"))?;
@@ -322,6 +333,8 @@ struct RawJob {
     created_at: i64,
     started_at: Option<i64>,
     finished_at: Option<i64>,
+    worker: Option<String>,
+    lease_expires_at: Option<i64>,
 }
 
 impl RawJob {
@@ -339,6 +352,8 @@ impl RawJob {
             created_at: r.get(9)?,
             started_at: r.get(10)?,
             finished_at: r.get(11)?,
+            worker: r.get(12)?,
+            lease_expires_at: r.get(13)?,
         })
     }
 
@@ -356,8 +371,15 @@ impl RawJob {
             created_at_ms: self.created_at,
             started_at_ms: self.started_at,
             finished_at_ms: self.finished_at,
+            worker: self.worker,
+            lease_expires_at_ms: self.lease_expires_at,
         })
     }
+}
+
+/// Milliseconds of a lease, saturated.
+fn lease_ms(lease: std::time::Duration) -> i64 {
+    i64::try_from(lease.as_millis()).unwrap_or(i64::MAX / 2)
 }
 
 fn get_job(conn: &Connection, id: Uuid) -> Result<Option<JobRecord>, StoreError> {
@@ -471,7 +493,7 @@ impl Store for SqliteStore {
         let conn = self.inner.conn();
         let inserted = conn.execute(
             &format!(
-                "INSERT INTO jobs ({JOB_COLUMNS}) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12 \
+                "INSERT INTO jobs ({JOB_COLUMNS}) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14 \
                  WHERE EXISTS (SELECT 1 FROM sequences WHERE id = ?2)"
             ),
             params![
@@ -486,7 +508,9 @@ impl Store for SqliteStore {
                 job.attempts,
                 job.created_at_ms,
                 job.started_at_ms,
-                job.finished_at_ms
+                job.finished_at_ms,
+                job.worker,
+                job.lease_expires_at_ms
             ],
         )?;
         if inserted == 0 {
@@ -518,37 +542,79 @@ impl Store for SqliteStore {
         raw.into_iter().map(RawJob::decode).collect()
     }
 
-    fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError> {
-        let conn = self.inner.conn();
-        conn.query_row(
-            &format!(
-                "UPDATE jobs SET status = 'running', started_at = ?1, attempts = attempts + 1 \
-                 WHERE id = (SELECT id FROM jobs WHERE status = 'queued' ORDER BY created_at, rowid LIMIT 1) \
-                 RETURNING {JOB_COLUMNS}"
-            ),
-            [now_ms()],
-            RawJob::from_row,
-        )
-        .optional()?
-        .map(RawJob::decode)
-        .transpose()
+    fn claim_next_job(&self, claim: &Claim) -> Result<Option<JobRecord>, StoreError> {
+        let mut conn = self.inner.conn();
+        let tx = conn.transaction()?;
+        let now = now_ms();
+        // A job whose worker died after a user asked to cancel it ends cancelled, as asked.
+        tx.execute(
+            "UPDATE jobs SET status = 'cancelled', finished_at = ?1, worker = NULL, lease_expires_at = NULL \
+             WHERE status = 'running' AND lease_expires_at < ?1 AND cancel_requested = 1",
+            [now],
+        )?;
+        // Orderly hand-backs give their attempt back, so `attempts` counts runs that died:
+        // a job that used them all fails rather than killing another worker.
+        tx.execute(
+            "UPDATE jobs SET status = 'failed', finished_at = ?1, worker = NULL, lease_expires_at = NULL, \
+             error = 'its worker stopped without finishing ' || attempts || ' times (the process died or \
+             lost the database); max_attempts is ' || ?2 \
+             WHERE (status = 'queued' OR (status = 'running' AND lease_expires_at < ?1)) AND attempts >= ?2",
+            params![now, claim.max_attempts],
+        )?;
+        let job = tx
+            .query_row(
+                &format!(
+                    "UPDATE jobs SET status = 'running', started_at = ?1, attempts = attempts + 1, worker = ?2, \
+                     lease_expires_at = ?1 + ?3 \
+                     WHERE id = (SELECT id FROM jobs WHERE status = 'queued' \
+                                 OR (status = 'running' AND lease_expires_at < ?1) \
+                                 ORDER BY created_at, rowid LIMIT 1) \
+                     RETURNING {JOB_COLUMNS}"
+                ),
+                params![now, claim.worker, lease_ms(claim.lease)],
+                RawJob::from_row,
+            )
+            .optional()?;
+        tx.commit()?;
+        job.map(RawJob::decode).transpose()
     }
 
-    fn update_progress(&self, id: Uuid, progress: &JobProgress) -> Result<bool, StoreError> {
+    fn renew_lease(&self, id: Uuid, worker: &str, lease: std::time::Duration) -> Result<LeaseStatus, StoreError> {
         let conn = self.inner.conn();
         let cancel: Option<bool> = conn
             .query_row(
-                "UPDATE jobs SET progress = ?2 WHERE id = ?1 AND status = 'running' RETURNING cancel_requested",
-                params![id.to_string(), json(progress)],
+                "UPDATE jobs SET lease_expires_at = ?3 WHERE id = ?1 AND status = 'running' AND worker = ?2 \
+                 RETURNING cancel_requested",
+                params![id.to_string(), worker, now_ms().saturating_add(lease_ms(lease))],
                 |r| r.get(0),
             )
             .optional()?;
-        // A job that is no longer running (e.g. deleted under us) has nobody waiting: stop.
-        Ok(cancel.unwrap_or(true))
+        Ok(cancel.map_or(LeaseStatus::Lost, |cancel_requested| LeaseStatus::Held { cancel_requested }))
     }
 
-    fn finish_job(&self, id: Uuid, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError> {
+    fn update_progress(&self, id: Uuid, worker: &str, progress: &JobProgress) -> Result<LeaseStatus, StoreError> {
+        let conn = self.inner.conn();
+        let cancel: Option<bool> = conn
+            .query_row(
+                "UPDATE jobs SET progress = ?3 WHERE id = ?1 AND status = 'running' AND worker = ?2 \
+                 RETURNING cancel_requested",
+                params![id.to_string(), worker, json(progress)],
+                |r| r.get(0),
+            )
+            .optional()?;
+        Ok(cancel.map_or(LeaseStatus::Lost, |cancel_requested| LeaseStatus::Held { cancel_requested }))
+    }
+
+    fn finish_job(&self, id: Uuid, worker: &str, outcome: JobOutcome<'_>) -> Result<JobRecord, StoreError> {
         let key = id.to_string();
+        let held = |conn: &Connection| -> Result<JobRecord, StoreError> {
+            let job = require_job(conn, id)?;
+            if job.status != JobStatus::Running || job.worker.as_deref() != Some(worker) {
+                return Err(StoreError::LeaseLost(format!("job {id} is no longer held by {worker}")));
+            }
+            Ok(job)
+        };
+        held(&self.inner.conn())?;
         let (status, error) = match &outcome {
             JobOutcome::Succeeded { model } => {
                 files::write_atomic(&self.inner.dir.model_path(&key), |w| std::io::Write::write_all(w, model))?;
@@ -557,25 +623,28 @@ impl Store for SqliteStore {
             JobOutcome::Failed { error } => (JobStatus::Failed, Some(error.clone())),
             JobOutcome::Cancelled => (JobStatus::Cancelled, None),
         };
-        // The job will not run again: its kept windows are of no more use. If removing them
-        // fails, the next start's sweep does it.
+        let conn = self.inner.conn();
+        let mut job = held(&conn)?;
+        if status == JobStatus::Succeeded {
+            job.progress.fraction = 1.0;
+            job.progress.eta_s = Some(0.0);
+        }
+        conn.execute(
+            "UPDATE jobs SET status = ?2, error = ?3, progress = ?4, finished_at = ?5, worker = NULL, \
+             lease_expires_at = NULL WHERE id = ?1",
+            params![key, status.as_str(), error, json(&job.progress), now_ms()],
+        )?;
+        let job = require_job(&conn, id)?;
+        drop(conn);
+        // The job will not run again: its kept windows and checkpoints are of no more use. If
+        // removing them fails, the next start's sweep does it.
         let windows = self.inner.dir.windows_dir().join(&key);
         if let Err(e) = fs::remove_dir_all(&windows)
             && e.kind() != std::io::ErrorKind::NotFound
         {
             tracing::warn!(path = %windows.display(), error = %e, "could not remove a finished job's windows");
         }
-        let conn = self.inner.conn();
-        let mut job = require_job(&conn, id)?;
-        if status == JobStatus::Succeeded {
-            job.progress.fraction = 1.0;
-            job.progress.eta_s = Some(0.0);
-        }
-        conn.execute(
-            "UPDATE jobs SET status = ?2, error = ?3, progress = ?4, finished_at = ?5 WHERE id = ?1",
-            params![key, status.as_str(), error, json(&job.progress), now_ms()],
-        )?;
-        require_job(&conn, id)
+        Ok(job)
     }
 
     fn fail_succeeded_job(&self, id: Uuid, error: &str) -> Result<Option<JobRecord>, StoreError> {
@@ -588,9 +657,16 @@ impl Store for SqliteStore {
         get_job(&conn, id)
     }
 
-    fn requeue_job(&self, id: Uuid) -> Result<JobRecord, StoreError> {
+    fn requeue_job(&self, id: Uuid, worker: &str) -> Result<JobRecord, StoreError> {
         let conn = self.inner.conn();
-        conn.execute("UPDATE jobs SET status = 'queued' WHERE id = ?1 AND status = 'running'", [id.to_string()])?;
+        let n = conn.execute(
+            "UPDATE jobs SET status = 'queued', attempts = MAX(attempts - 1, 0), worker = NULL, \
+             lease_expires_at = NULL WHERE id = ?1 AND status = 'running' AND worker = ?2",
+            params![id.to_string(), worker],
+        )?;
+        if n == 0 {
+            return Err(StoreError::LeaseLost(format!("job {id} is no longer held by {worker}")));
+        }
         require_job(&conn, id)
     }
 
@@ -624,10 +700,14 @@ impl Store for SqliteStore {
         let tx = conn.transaction()?;
         // A job whose cancellation was requested before the crash ends cancelled, as asked.
         tx.execute(
-            "UPDATE jobs SET status = 'cancelled', finished_at = ?1 WHERE status = 'running' AND cancel_requested = 1",
+            "UPDATE jobs SET status = 'cancelled', finished_at = ?1, worker = NULL, lease_expires_at = NULL \
+             WHERE status = 'running' AND cancel_requested = 1",
             [now_ms()],
         )?;
-        let n = tx.execute("UPDATE jobs SET status = 'queued' WHERE status = 'running'", [])?;
+        let n = tx.execute(
+            "UPDATE jobs SET status = 'queued', worker = NULL, lease_expires_at = NULL WHERE status = 'running'",
+            [],
+        )?;
         tx.commit()?;
         Ok(n)
     }
@@ -707,7 +787,20 @@ mod tests {
             created_at_ms: now_ms(),
             started_at_ms: None,
             finished_at_ms: None,
+            worker: None,
+            lease_expires_at_ms: None,
         }
+    }
+
+    const WORKER: &str = "test:1:0";
+
+    fn claim_as(worker: &str, lease_ms: u64, max_attempts: u32) -> Claim {
+        Claim { worker: worker.into(), lease: std::time::Duration::from_millis(lease_ms), max_attempts }
+    }
+
+    /// A claim by [`WORKER`] with a lease no test outlives.
+    fn claim() -> Claim {
+        claim_as(WORKER, 600_000, 3)
     }
 
     #[test]
@@ -745,10 +838,10 @@ mod tests {
         let (a, b) = (job(seq.id), job(seq.id));
         store.insert_job(&a).unwrap();
         store.insert_job(&b).unwrap();
-        let first = store.claim_next_job().unwrap().unwrap();
+        let first = store.claim_next_job(&claim()).unwrap().unwrap();
         assert_eq!((first.id, first.status, first.attempts), (a.id, JobStatus::Running, 1));
-        assert_eq!(store.claim_next_job().unwrap().unwrap().id, b.id);
-        assert!(store.claim_next_job().unwrap().is_none());
+        assert_eq!(store.claim_next_job(&claim()).unwrap().unwrap().id, b.id);
+        assert!(store.claim_next_job(&claim()).unwrap().is_none());
         fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -769,8 +862,8 @@ mod tests {
             let (a, b) = (job(seq.id), job(seq.id));
             store.insert_job(&a).unwrap();
             store.insert_job(&b).unwrap();
-            store.claim_next_job().unwrap();
-            store.claim_next_job().unwrap();
+            store.claim_next_job(&claim()).unwrap();
+            store.claim_next_job(&claim()).unwrap();
             assert!(matches!(store.request_cancel(b.id).unwrap(), CancelOutcome::Accepted(_)));
             (a.id, b.id)
         };
@@ -778,7 +871,7 @@ mod tests {
         assert_eq!(store.requeue_running_jobs().unwrap(), 1);
         assert_eq!(store.get_job(a).unwrap().unwrap().status, JobStatus::Queued);
         assert_eq!(store.get_job(b).unwrap().unwrap().status, JobStatus::Cancelled);
-        let again = store.claim_next_job().unwrap().unwrap();
+        let again = store.claim_next_job(&claim()).unwrap().unwrap();
         assert_eq!((again.id, again.attempts), (a, 2));
         fs::remove_dir_all(&dir).unwrap();
     }
@@ -790,15 +883,16 @@ mod tests {
         let seq = sequence(&store);
         let (a, b) = (job(seq.id), job(seq.id));
         store.insert_job(&a).unwrap();
-        store.claim_next_job().unwrap();
+        store.claim_next_job(&claim()).unwrap();
         store.insert_job(&b).unwrap();
         let CancelOutcome::Accepted(queued) = store.request_cancel(b.id).unwrap() else { panic!() };
         assert_eq!(queued.status, JobStatus::Cancelled);
-        assert!(!store.update_progress(a.id, &JobProgress::default()).unwrap());
+        let held = |cancel_requested| LeaseStatus::Held { cancel_requested };
+        assert_eq!(store.update_progress(a.id, WORKER, &JobProgress::default()).unwrap(), held(false));
         let CancelOutcome::Accepted(running) = store.request_cancel(a.id).unwrap() else { panic!() };
         assert_eq!((running.status, running.cancel_requested), (JobStatus::Running, true));
-        assert!(store.update_progress(a.id, &JobProgress::default()).unwrap());
-        let done = store.finish_job(a.id, JobOutcome::Cancelled).unwrap();
+        assert_eq!(store.update_progress(a.id, WORKER, &JobProgress::default()).unwrap(), held(true));
+        let done = store.finish_job(a.id, WORKER, JobOutcome::Cancelled).unwrap();
         assert_eq!(done.status, JobStatus::Cancelled);
         assert!(done.finished_at_ms.is_some());
         assert_eq!(store.request_cancel(Uuid::new_v4()).unwrap(), CancelOutcome::NotFound);
@@ -813,8 +907,8 @@ mod tests {
         let a = job(seq.id);
         store.insert_job(&a).unwrap();
         assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::HasActiveJobs);
-        store.claim_next_job().unwrap();
-        let done = store.finish_job(a.id, JobOutcome::Succeeded { model: b"model" }).unwrap();
+        store.claim_next_job(&claim()).unwrap();
+        let done = store.finish_job(a.id, WORKER, JobOutcome::Succeeded { model: b"model" }).unwrap();
         assert_eq!((done.status, done.progress.fraction), (JobStatus::Succeeded, 1.0));
         assert_eq!(store.read_model(a.id).unwrap(), b"model");
         assert_eq!(store.delete_sequence(seq.id).unwrap(), DeleteOutcome::Deleted);
@@ -832,7 +926,7 @@ mod tests {
         let seq = sequence(&first);
         let a = job(seq.id);
         first.insert_job(&a).unwrap();
-        first.claim_next_job().unwrap();
+        first.claim_next_job(&claim()).unwrap();
         // A second opening would sweep the first one's uploads and re-queue its running job.
         assert!(matches!(SqliteStore::open(&dir), Err(StoreError::InUse(_))));
         assert_eq!(first.get_job(a.id).unwrap().unwrap().status, JobStatus::Running);
@@ -870,7 +964,7 @@ mod tests {
         for _ in 0..3 {
             store.insert_job(&job(seq.id)).unwrap();
         }
-        store.claim_next_job().unwrap();
+        store.claim_next_job(&claim()).unwrap();
         let queued = store
             .list_jobs(&JobFilter { status: Some(JobStatus::Queued), sequence_id: Some(seq.id), limit: 10 })
             .unwrap();
@@ -879,6 +973,106 @@ mod tests {
         counts.sort_by_key(|(s, _)| s.as_str());
         assert_eq!(counts, vec![(JobStatus::Queued, 2), (JobStatus::Running, 1)]);
         assert_eq!(store.list_jobs(&JobFilter { limit: 1, ..Default::default() }).unwrap().len(), 1);
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_expired_lease_lets_another_worker_claim_the_job_and_the_first_records_nothing() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let a = job(seq.id);
+        store.insert_job(&a).unwrap();
+        let first = store.claim_next_job(&claim_as("w1", 200, 3)).unwrap().unwrap();
+        assert_eq!((first.worker.as_deref(), first.attempts), (Some("w1"), 1));
+        // A live lease keeps the job from everyone else.
+        assert!(store.claim_next_job(&claim_as("w0", 600_000, 3)).unwrap().is_none());
+        std::thread::sleep(std::time::Duration::from_millis(250));
+        let second = store.claim_next_job(&claim_as("w2", 600_000, 3)).unwrap().unwrap();
+        assert_eq!((second.id, second.worker.as_deref(), second.attempts), (a.id, Some("w2"), 2));
+        assert!(store.claim_next_job(&claim_as("w3", 600_000, 3)).unwrap().is_none());
+        let progress = JobProgress::default();
+        assert_eq!(store.update_progress(a.id, "w1", &progress).unwrap(), LeaseStatus::Lost);
+        let lost = std::time::Duration::from_secs(60);
+        assert_eq!(store.renew_lease(a.id, "w1", lost).unwrap(), LeaseStatus::Lost);
+        let late = store.finish_job(a.id, "w1", JobOutcome::Succeeded { model: b"stale" });
+        assert!(matches!(late, Err(StoreError::LeaseLost(_))), "{late:?}");
+        assert!(matches!(store.requeue_job(a.id, "w1"), Err(StoreError::LeaseLost(_))));
+        assert!(matches!(store.read_model(a.id), Err(StoreError::Missing(_))));
+        let held = LeaseStatus::Held { cancel_requested: false };
+        assert_eq!(store.renew_lease(a.id, "w2", lost).unwrap(), held);
+        let done = store.finish_job(a.id, "w2", JobOutcome::Succeeded { model: b"model" }).unwrap();
+        assert_eq!((done.status, done.worker, done.lease_expires_at_ms), (JobStatus::Succeeded, None, None));
+        assert_eq!(store.read_model(a.id).unwrap(), b"model");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_renewed_lease_outlives_its_first_term() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        store.insert_job(&job(seq.id)).unwrap();
+        let a = store.claim_next_job(&claim_as("w1", 300, 3)).unwrap().unwrap();
+        for _ in 0..4 {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            let renewed = store.renew_lease(a.id, "w1", std::time::Duration::from_millis(300)).unwrap();
+            assert_eq!(renewed, LeaseStatus::Held { cancel_requested: false });
+        }
+        // 400 ms after a 300 ms claim: without the renewals the job would be up for grabs.
+        assert!(store.claim_next_job(&claim_as("w2", 300, 3)).unwrap().is_none());
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_job_whose_workers_keep_dying_fails_after_max_attempts_and_a_handed_back_run_is_free() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let a = job(seq.id);
+        store.insert_job(&a).unwrap();
+        // Orderly hand-backs (shutdowns) do not use attempts up.
+        for _ in 0..5 {
+            let run = store.claim_next_job(&claim_as("w", 600_000, 2)).unwrap().unwrap();
+            assert_eq!(run.attempts, 1);
+            assert_eq!(store.requeue_job(a.id, "w").unwrap().attempts, 0);
+        }
+        for attempt in 1..=2 {
+            let run = store.claim_next_job(&claim_as(&format!("w{attempt}"), 1, 2)).unwrap().unwrap();
+            assert_eq!(run.attempts, attempt);
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        assert!(store.claim_next_job(&claim_as("w3", 600_000, 2)).unwrap().is_none());
+        let failed = store.get_job(a.id).unwrap().unwrap();
+        assert_eq!((failed.status, failed.worker), (JobStatus::Failed, None));
+        let error = failed.error.unwrap();
+        assert!(error.contains("2 times") && error.contains("max_attempts is 2"), "{error}");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_version_1_database_gains_the_lease_columns_and_keeps_its_jobs() {
+        let dir = temp_dir();
+        let id = {
+            let store = SqliteStore::open(&dir).unwrap();
+            let seq = sequence(&store);
+            let a = job(seq.id);
+            store.insert_job(&a).unwrap();
+            a.id
+        };
+        {
+            // Back to version 1's table: the same columns without the lease.
+            let conn = Connection::open(DataDir::create(&dir).unwrap().database()).unwrap();
+            conn.execute_batch(
+                "ALTER TABLE jobs DROP COLUMN worker; ALTER TABLE jobs DROP COLUMN lease_expires_at; \
+                 PRAGMA user_version = 1;",
+            )
+            .unwrap();
+        }
+        let store = SqliteStore::open(&dir).unwrap();
+        assert_eq!(store.get_job(id).unwrap().unwrap().status, JobStatus::Queued);
+        let run = store.claim_next_job(&claim()).unwrap().unwrap();
+        assert_eq!((run.id, run.worker.as_deref()), (id, Some(WORKER)));
         fs::remove_dir_all(&dir).unwrap();
     }
 }
