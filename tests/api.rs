@@ -847,7 +847,7 @@ async fn a_job_interrupted_by_a_restart_runs_again_and_the_sequence_is_intact() 
     let db = rusqlite::Connection::open(dir.join("mbnt.sqlite3")).unwrap();
     let status: String = db.query_row("SELECT status FROM jobs WHERE id = ?1", [&job], |r| r.get(0)).unwrap();
     assert_eq!(status, "queued");
-    assert_eq!(db.execute("UPDATE jobs SET status = 'running' WHERE id = ?1", [&job]).unwrap(), 1);
+    assert_eq!(db.execute("UPDATE jobs SET status = 'running', attempts = 1 WHERE id = ?1", [&job]).unwrap(), 1);
     drop(db);
 
     let s = TestServer::start_with(Options { dir: Some(dir.clone()), ..Options::default() }).await;

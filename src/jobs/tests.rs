@@ -211,7 +211,109 @@ fn a_shutdown_puts_the_running_job_back_in_the_queue_and_it_runs_again() {
     });
     let (w2, _) = worker(&f, SlowFitter { steps: 3, step: Duration::from_millis(1) });
     let done = w2.try_execute_next().unwrap().unwrap();
+    // The orderly hand-back gave its attempt back: attempts count runs that died or ended.
+    assert_eq!((done.id, done.status, done.attempts), (job.id, JobStatus::Succeeded, 1));
+}
+
+/// Runs the real fit, but the first time stops it (as a killed worker would stop) once
+/// `stop_at` iterations are done.
+struct StopOnce {
+    stop_at: usize,
+    stopped: AtomicBool,
+}
+
+impl Fitter for StopOnce {
+    fn fit(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        CoreFitter.fit(sequence, method, params, on_progress)
+    }
+
+    fn fit_resuming(
+        &self,
+        sequence: &dyn crate::fit::FrameSource,
+        method: Method,
+        params: &ValidFitParams,
+        finished: &mut dyn crate::fit::windows::FinishedWindows,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        CoreFitter.fit_resuming(sequence, method, params, finished, &mut |p| {
+            if p.iteration >= self.stop_at && !self.stopped.swap(true, Ordering::Relaxed) {
+                return ControlFlow::Break(());
+            }
+            on_progress(p)
+        })
+    }
+}
+
+fn fixture_with(settings: WorkerSettings) -> Fixture {
+    let mut f = fixture();
+    f.queue = JobQueue::with_settings(f.queue.store().clone(), settings);
+    f
+}
+
+#[test]
+fn a_job_stopped_after_a_checkpoint_goes_on_from_it_and_ends_with_the_same_network() {
+    let settings = WorkerSettings { checkpoint_every: Duration::ZERO, ..WorkerSettings::default() };
+    let f = fixture_with(settings);
+    let params = FitParams {
+        iterations: Some(30),
+        validate_every: Some(5),
+        validation_patience: Some(0),
+        hidden_width: Some(16),
+        hidden_layers: Some(2),
+        ..FitParams::default()
+    }
+    .check(Method::Ntp)
+    .unwrap();
+    let whole = JobQueue::new_job(f.sequence, Method::Ntp, params.clone());
+    f.queue.submit(&whole).unwrap();
+    let (w, _) = worker(&f, CoreFitter);
+    let whole = w.try_execute_next().unwrap().unwrap();
+    assert_eq!((whole.status, whole.progress.resumed_from_iteration), (JobStatus::Succeeded, None));
+
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, params);
+    f.queue.submit(&job).unwrap();
+    let (w, _) = worker(&f, StopOnce { stop_at: 23, stopped: AtomicBool::new(false) });
+    let stopped = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(stopped.status, JobStatus::Queued);
+    let resumed = w.try_execute_next().unwrap().unwrap();
+    // The checkpoint before iteration 23 was taken at the start of validation iteration 20.
+    assert_eq!((resumed.status, resumed.progress.resumed_from_iteration), (JobStatus::Succeeded, Some(20)));
+
+    let load = |id| FittedModel::from_bytes(&f.queue.store().read_model(id).unwrap()).unwrap();
+    let (a, b) = (load(whole.id), load(job.id));
+    let points: Vec<[f32; 3]> = (0..50).map(|i| [i as f32 * 0.05, 0.3, 1.0]).collect();
+    let bits = |m: &FittedModel| -> Vec<u32> {
+        m.network_positions(&points, 0.0, &[1.0]).iter().flatten().map(|c| c.to_bits()).collect()
+    };
+    assert_eq!(bits(&a), bits(&b), "a resumed fit must end with the uninterrupted fit's network");
+    assert_eq!(a.report().losses, b.report().losses);
+    assert_eq!(a.report().best_iteration, b.report().best_iteration);
+}
+
+#[test]
+fn a_job_whose_worker_stopped_renewing_is_run_by_another_worker_and_the_first_records_nothing() {
+    let settings = WorkerSettings { lease: Duration::from_millis(300), ..WorkerSettings::default() };
+    let f = fixture_with(settings);
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, tiny_params(Method::Ntp));
+    f.queue.submit(&job).unwrap();
+    let store = f.queue.store();
+    // A worker that claims the job and then dies (never renews).
+    let dead = crate::store::Claim { worker: "dead:1:0".into(), lease: Duration::from_millis(300), max_attempts: 3 };
+    assert_eq!(store.claim_next_job(&dead).unwrap().unwrap().id, job.id);
+    let (w, _) = worker(&f, CoreFitter);
+    assert!(w.try_execute_next().unwrap().is_none(), "a live lease is nobody else's to take");
+    std::thread::sleep(Duration::from_millis(400));
+    let done = w.try_execute_next().unwrap().unwrap();
     assert_eq!((done.id, done.status, done.attempts), (job.id, JobStatus::Succeeded, 2));
+    let late = store.finish_job(job.id, "dead:1:0", crate::store::JobOutcome::Failed { error: "late".into() });
+    assert!(matches!(late, Err(StoreError::LeaseLost(_))));
+    assert_eq!(store.get_job(job.id).unwrap().unwrap().status, JobStatus::Succeeded);
 }
 
 #[test]
