@@ -1,7 +1,7 @@
 //! The `mbnt` binary: a thin dispatcher over the library's command front ends.
 
 use clap::{Parser, Subcommand};
-use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, label_cmd, load_cmd, odometry_cmd, serve_cmd, simulate_cmd};
+use mbnt::cli::{bench_cmd, eval_cmd, fit_cmd, label_cmd, load_cmd, odometry_cmd, serve_cmd, simulate_cmd, worker_cmd};
 
 /// Long-term per-point 4D trajectories for LiDAR point-cloud sequences.
 #[derive(Debug, Parser)]
@@ -15,6 +15,8 @@ struct Cli {
 enum Command {
     /// Run the HTTP service (uploads, fit jobs, queries, label export).
     Serve(serve_cmd::ServeArgs),
+    /// Fit jobs of a shared store (PostgreSQL + object store) without serving HTTP: a fleet's worker.
+    Worker(worker_cmd::WorkerArgs),
     /// Fit a method to frame files and write trajectories and scene-flow labels (.npz).
     Fit(fit_cmd::FitArgs),
     /// Label a log in a dataset's layout (Argoverse 2, KITTI): one scene-flow file per frame.
@@ -40,6 +42,7 @@ fn main() -> anyhow::Result<()> {
         .init();
     match Cli::parse().command {
         Command::Serve(args) => serve_cmd::run(args),
+        Command::Worker(args) => worker_cmd::run(args),
         Command::Fit(args) => fit_cmd::run(args),
         Command::Label(args) => label_cmd::run(args),
         Command::Simulate(args) => simulate_cmd::run(args),

@@ -600,6 +600,8 @@ fn start_local(dir: PathBuf, threads_per_job: usize) -> anyhow::Result<(tokio::r
     let config = ServiceConfig {
         bind: "127.0.0.1:0".parse().expect("a valid address"),
         data_dir: dir,
+        store: Default::default(),
+        worker: Default::default(),
         workers: 1,
         threads_per_job,
         api_token: None,

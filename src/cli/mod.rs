@@ -11,3 +11,4 @@ pub mod progress;
 pub mod real_pair;
 pub mod serve_cmd;
 pub mod simulate_cmd;
+pub mod worker_cmd;

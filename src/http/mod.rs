@@ -28,9 +28,9 @@ use axum::{Json, Router};
 use tokio::sync::watch;
 use uuid::Uuid;
 
-use crate::jobs::{Fitter, JobQueue, WorkerPool};
+use crate::jobs::{Fitter, JobQueue, WorkerPool, WorkerSettings};
 use crate::model::FittedModel;
-use crate::store::{SqliteStore, Store, StoreError};
+use crate::store::{Store, StoreConfig, StoreError};
 pub use error::ApiError;
 pub use sequences::parse_meta_part;
 
@@ -79,9 +79,14 @@ impl Default for Limits {
 pub struct ServiceConfig {
     /// Address to listen on (port 0 picks a free one).
     pub bind: SocketAddr,
-    /// Data directory (database, frames, models); created when absent.
+    /// Data directory (database, frames, models); created when absent. With a shared store,
+    /// only its `tmp/` is used (upload parts).
     pub data_dir: PathBuf,
-    /// Fits that may run at once.
+    /// The embedded store (default) or a fleet's shared one.
+    pub store: StoreConfig,
+    /// How the workers hold jobs and keep checkpoints.
+    pub worker: WorkerSettings,
+    /// Fits that may run at once in this process (0: none, the API alone).
     pub workers: usize,
     /// Threads of each fit.
     pub threads_per_job: usize,
@@ -327,21 +332,12 @@ impl Service {
     /// Opens the store, re-queues jobs left running by a dead process, starts the workers
     /// (fitting with `fitter`) and starts serving on `config.bind`.
     pub async fn start(config: ServiceConfig, fitter: Arc<dyn Fitter>) -> anyhow::Result<Self> {
-        let data_dir = config.data_dir.clone();
-        let store = tokio::task::spawn_blocking(move || -> anyhow::Result<SqliteStore> {
-            let store = SqliteStore::open(&data_dir)
-                .with_context(|| format!("opening the data directory {}", data_dir.display()))?;
-            let requeued = store.requeue_running_jobs().context("re-queueing interrupted jobs")?;
-            if requeued > 0 {
-                tracing::info!(requeued, "jobs interrupted by the last stop are queued again");
-            }
-            Ok(store)
-        })
-        .await??;
-        let tmp_dir = store.data_dir().tmp_dir();
-        let store: Arc<dyn Store> = Arc::new(store);
-        let queue = JobQueue::new(store.clone());
-        let workers = WorkerPool::start(queue.clone(), fitter, config.workers.max(1), config.threads_per_job.max(1))?;
+        let (data_dir, store_config) = (config.data_dir.clone(), config.store.clone());
+        let (store, tmp_dir) = tokio::task::spawn_blocking(move || crate::store::open(&data_dir, &store_config))
+            .await?
+            .context("opening the store")?;
+        let queue = JobQueue::with_settings(store.clone(), config.worker.clone());
+        let workers = WorkerPool::start(queue.clone(), fitter, config.workers, config.threads_per_job.max(1))?;
         let (stop, stopped) = watch::channel(false);
         let state = AppState {
             inner: Arc::new(StateInner {

@@ -10,6 +10,9 @@
 pub mod files;
 pub mod sqlite;
 
+use std::path::PathBuf;
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
@@ -340,6 +343,50 @@ pub trait Store: Send + Sync + 'static {
     fn count_jobs_by_status(&self) -> Result<Vec<(JobStatus, u64)>, StoreError>;
     /// Checks that the storage answers (for /healthz).
     fn ping(&self) -> Result<(), StoreError>;
+}
+
+/// Which store a process uses: the embedded one (SQLite and a local directory, one process) or
+/// a fleet's (PostgreSQL and an object store, any number of processes).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StoreConfig {
+    /// The fleet's PostgreSQL database (`postgres://...`); `None`: the embedded store.
+    pub database_url: Option<String>,
+    /// The fleet's object store (`file:///DIR`, `s3://BUCKET/PREFIX`); default with a
+    /// database: `objects/` of the data directory.
+    pub object_store_url: Option<String>,
+}
+
+/// Opens the store `config` names, with `data_dir` as the embedded store's directory (or, for a
+/// fleet, the local scratch space and default object store); returns it and the scratch
+/// directory for upload parts. The embedded store puts the jobs its last process left running
+/// back in the queue (one process owns it, so their worker is gone).
+pub fn open(data_dir: &std::path::Path, config: &StoreConfig) -> Result<(Arc<dyn Store>, PathBuf), StoreError> {
+    let Some(database_url) = &config.database_url else {
+        if config.object_store_url.is_some() {
+            return Err(StoreError::InUse(
+                "MBNT_OBJECT_STORE_URL needs MBNT_DATABASE_URL: the embedded store keeps its files in the data \
+                 directory"
+                    .into(),
+            ));
+        }
+        let store = SqliteStore::open(data_dir)?;
+        let requeued = store.requeue_running_jobs()?;
+        if requeued > 0 {
+            tracing::info!(requeued, "jobs interrupted by the last stop are queued again");
+        }
+        let tmp = store.data_dir().tmp_dir();
+        return Ok((Arc::new(store), tmp));
+    };
+    open_fleet(data_dir, database_url, config.object_store_url.as_deref())
+}
+
+fn open_fleet(
+    data_dir: &std::path::Path,
+    database_url: &str,
+    object_store_url: Option<&str>,
+) -> Result<(Arc<dyn Store>, PathBuf), StoreError> {
+    let _ = (data_dir, database_url, object_store_url);
+    Err(StoreError::InUse("the fleet store is not in this build yet".into()))
 }
 
 /// Milliseconds since the Unix epoch, now.

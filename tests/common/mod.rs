@@ -90,6 +90,8 @@ impl TestServer {
         let config = ServiceConfig {
             bind: "127.0.0.1:0".parse().unwrap(),
             data_dir: dir.clone(),
+            store: Default::default(),
+            worker: Default::default(),
             workers: options.workers,
             threads_per_job: 1,
             api_token: options.token.clone(),
