@@ -71,6 +71,97 @@ pub trait FinishedWindows {
     fn resumed(&mut self, first_frame: usize, frames: usize, iteration: usize) {
         let _ = (first_frame, frames, iteration);
     }
+    /// Asks to fit the window here: `false` when another worker is fitting it now (it will
+    /// [`keep`](FinishedWindows::keep) it where [`take`](FinishedWindows::take) finds it). The
+    /// default: every window is fitted here.
+    fn claim(&mut self, first_frame: usize, frames: usize) -> bool {
+        let _ = (first_frame, frames);
+        true
+    }
+    /// The window claimed by [`FinishedWindows::claim`] is fitted (or its fit stopped).
+    fn release(&mut self, first_frame: usize, frames: usize) {
+        let _ = (first_frame, frames);
+    }
+}
+
+/// How long a fit waiting for windows fitted elsewhere sleeps between looks.
+const WAIT_FOR_OTHERS: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// Whether another process may fit windows of `sequence` beside the job's own worker
+/// ([`fit_window`]): the log is fitted as windows and settling its world needs no odometry run
+/// over every frame (that would be repeated by each helper).
+pub fn windows_can_be_shared(sequence: &dyn FrameSource, params: &ValidFitParams) -> bool {
+    is_windowed(sequence, params)
+        && (!params.use_poses
+            || matches!(
+                (params.odometry, sequence.poses()),
+                (crate::model::params::OdometryMode::Off, _) | (crate::model::params::OdometryMode::Auto, Some(_))
+            ))
+}
+
+/// Window `window` of a log (see [`window_starts`]) read from `sequence`: its frames, times and
+/// slice of the log's world poses.
+fn window_part(
+    sequence: &dyn FrameSource,
+    world: Option<&[[f64; 16]]>,
+    range: std::ops::Range<usize>,
+) -> Result<Sequence, FitError> {
+    Ok(Sequence {
+        frames: sequence.read_frames(range.clone())?,
+        timestamps_s: sequence.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
+        poses: world.map(|poses| poses[range].to_vec()),
+    })
+}
+
+/// The log's poses as the windows use them (relative to frame 0, row-major), settled once.
+fn world_poses(coordinates: &super::FitCoordinates) -> Option<Vec<[f64; 16]>> {
+    coordinates.frame_poses.as_ref().map(|poses| poses.iter().map(|p| p.to_row_major()).collect())
+}
+
+/// Fits window `window` of a log alone, as [`fit_log`] fits it (same frames, poses and
+/// parameters, so the same model bit for bit): the work a helper does for a job whose own
+/// worker is busy with other windows. Returns the window's first frame, frame count and model.
+pub fn fit_window(
+    sequence: &dyn FrameSource,
+    method: Method,
+    params: &ValidFitParams,
+    window: usize,
+    checkpoints: &mut dyn Checkpoints,
+    on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+) -> Result<FittedModel, FitError> {
+    validate_log(sequence)?;
+    let starts = window_starts(sequence.frame_count(), params.window_frames, params.window_overlap_frames);
+    let start = *starts.get(window).ok_or_else(|| {
+        FitError::InvalidSequence(format!("the log has {} windows, not {}", starts.len(), window + 1))
+    })?;
+    let world = world_poses(&fit_coordinates(sequence, params)?);
+    let part = window_part(sequence, world.as_deref(), start..start + params.window_frames)?;
+    fit_single(&part, method, &params.for_window(), checkpoints, on_progress)
+}
+
+/// The [`Checkpoints`] of one window, kept by a [`FinishedWindows`] (for [`fit_window`]).
+pub struct KeptCheckpoints<'a>(WindowCheckpoints<'a>);
+
+impl<'a> KeptCheckpoints<'a> {
+    /// The checkpoints of the window of `frames` frames from `first_frame`, kept by `finished`.
+    pub fn new(finished: &'a mut dyn FinishedWindows, first_frame: usize, frames: usize) -> Self {
+        Self(WindowCheckpoints { finished, first_frame, frames })
+    }
+}
+
+impl Checkpoints for KeptCheckpoints<'_> {
+    fn due(&mut self) -> bool {
+        self.0.due()
+    }
+    fn latest(&mut self) -> Option<Vec<u8>> {
+        self.0.latest()
+    }
+    fn keep(&mut self, bytes: &[u8]) {
+        self.0.keep(bytes);
+    }
+    fn resumed(&mut self, iteration: usize) {
+        self.0.resumed(iteration);
+    }
 }
 
 /// The [`Checkpoints`] of one window, kept by a [`FinishedWindows`].
@@ -155,55 +246,100 @@ pub fn fit_log(
     // Each window gets its slice of the log's poses and is told not to estimate its own: the
     // windows then share the log's world. (Poses relative to frame 0 serve as world poses: a
     // window re-expresses them relative to its own first frame.)
-    let world: Option<Vec<[f64; 16]>> =
-        coordinates.frame_poses.as_ref().map(|poses| poses.iter().map(|p| p.to_row_major()).collect());
+    let world = world_poses(&coordinates);
     let window_params = params.for_window();
     let frames = sequence.frame_count();
     let starts = window_starts(frames, params.window_frames, params.window_overlap_frames);
-    let mut windows = Vec::with_capacity(starts.len());
-    for (w, &start) in starts.iter().enumerate() {
-        let range = start..start + params.window_frames;
-        let position = WindowProgress {
-            window: w,
-            windows_done: w,
-            windows: starts.len(),
-            first_frame: start,
-            frames: params.window_frames,
-        };
-        if let Some(model) = finished.take(start, params.window_frames) {
-            tracing::info!(window = w, windows = starts.len(), first_frame = start, "taking a window finished before");
-            // One report for the window, so that progress shows it done and a cancel is heard.
-            let done = Progress {
-                iteration: model.report().iterations,
+    let mut windows: Vec<Option<FittedModel>> = starts.iter().map(|_| None).collect();
+    let mut done = 0;
+    // First pass in order; windows another worker was fitting are looked at again (and fitted
+    // here if their worker stopped) until every one is there.
+    let mut first_pass = true;
+    let mut last_progress: Option<Progress> = None;
+    while done < starts.len() {
+        let mut waiting = false;
+        for (w, &start) in starts.iter().enumerate() {
+            if windows[w].is_some() {
+                continue;
+            }
+            let position = WindowProgress {
+                window: w,
+                windows_done: done,
+                windows: starts.len(),
+                first_frame: start,
+                frames: params.window_frames,
+            };
+            if let Some(model) = finished.take(start, params.window_frames) {
+                tracing::info!(window = w, windows = starts.len(), first_frame = start, "taking a finished window");
+                // One report for the window, so that progress shows it done and a cancel is heard.
+                let report = Progress {
+                    iteration: model.report().iterations,
+                    iterations: window_params.iterations,
+                    loss: super::LossTerms::default(),
+                    best_validation_loss: model.report().best_validation_loss,
+                    validation_loss: None,
+                    fewest_live_units: None,
+                    rigid_tracks: None,
+                    window: Some(WindowProgress { windows_done: done + 1, ..position }),
+                };
+                if on_progress(&report).is_break() {
+                    return Err(FitError::Cancelled { iteration: report.iteration });
+                }
+                windows[w] = Some(model);
+                done += 1;
+                continue;
+            }
+            if !finished.claim(start, params.window_frames) {
+                if first_pass {
+                    tracing::info!(window = w, first_frame = start, "another worker is fitting this window");
+                }
+                waiting = true;
+                continue;
+            }
+            // Another worker may have kept it between the look above and the claim.
+            if let Some(model) = finished.take(start, params.window_frames) {
+                finished.release(start, params.window_frames);
+                windows[w] = Some(model);
+                done += 1;
+                continue;
+            }
+            tracing::info!(window = w, windows = starts.len(), first_frame = start, "fitting a window");
+            // Read here, and dropped once the window is fitted: one window's frames at a time.
+            let part = window_part(sequence, world.as_deref(), start..start + params.window_frames)?;
+            let mut checkpoints =
+                WindowCheckpoints { finished: &mut *finished, first_frame: start, frames: params.window_frames };
+            let fitted = fit_single(&part, method, &window_params, &mut checkpoints, &mut |p: &Progress| {
+                let p = Progress { window: Some(position), ..p.clone() };
+                last_progress = Some(p.clone());
+                on_progress(&p)
+            });
+            finished.release(start, params.window_frames);
+            let model = fitted?;
+            finished.keep(start, params.window_frames, &model);
+            windows[w] = Some(model);
+            done += 1;
+        }
+        first_pass = false;
+        if waiting && done < starts.len() {
+            // Heard by a cancel while others fit; repeats the last report.
+            let idle = last_progress.clone().unwrap_or(Progress {
+                iteration: 0,
                 iterations: window_params.iterations,
                 loss: super::LossTerms::default(),
-                best_validation_loss: model.report().best_validation_loss,
+                best_validation_loss: None,
                 validation_loss: None,
                 fewest_live_units: None,
                 rigid_tracks: None,
-                window: Some(position),
-            };
-            if on_progress(&done).is_break() {
-                return Err(FitError::Cancelled { iteration: done.iteration });
+                window: None,
+            });
+            if on_progress(&idle).is_break() {
+                return Err(FitError::Cancelled { iteration: idle.iteration });
             }
-            windows.push((start, model));
-            continue;
+            std::thread::sleep(WAIT_FOR_OTHERS);
         }
-        tracing::info!(window = w, windows = starts.len(), first_frame = start, "fitting a window");
-        // Read here, and dropped once the window is fitted: one window's frames at a time.
-        let part = Sequence {
-            frames: sequence.read_frames(range.clone())?,
-            timestamps_s: sequence.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
-            poses: world.as_ref().map(|poses| poses[range].to_vec()),
-        };
-        let mut checkpoints =
-            WindowCheckpoints { finished: &mut *finished, first_frame: start, frames: params.window_frames };
-        let model = fit_single(&part, method, &window_params, &mut checkpoints, &mut |p: &Progress| {
-            on_progress(&Progress { window: Some(position), ..p.clone() })
-        })?;
-        finished.keep(start, params.window_frames, &model);
-        windows.push((start, model));
     }
+    let windows: Vec<(usize, FittedModel)> =
+        starts.iter().copied().zip(windows.into_iter().map(|m| m.expect("every window is done"))).collect();
     let report = crate::model::FitReport {
         params: Some(params.clone()),
         estimated_poses: coordinates.estimated_poses,

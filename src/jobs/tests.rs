@@ -487,3 +487,103 @@ fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
     // The objects (GET /v1/jobs/{id}/objects) each cover the whole log.
     assert!(model.bodies().iter().all(|b| b.fits(100)));
 }
+
+/// Runs the real fit but holds the first report of window 0 for `hold`: a job's worker busy
+/// with its first window while another worker looks for work.
+struct HoldFirstWindow {
+    hold: Duration,
+}
+
+impl Fitter for HoldFirstWindow {
+    fn fit(
+        &self,
+        sequence: &Sequence,
+        method: Method,
+        params: &ValidFitParams,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        CoreFitter.fit(sequence, method, params, on_progress)
+    }
+
+    fn fit_resuming(
+        &self,
+        sequence: &dyn crate::fit::FrameSource,
+        method: Method,
+        params: &ValidFitParams,
+        finished: &mut dyn crate::fit::windows::FinishedWindows,
+        on_progress: &mut dyn FnMut(&Progress) -> ControlFlow<()>,
+    ) -> Result<FittedModel, FitError> {
+        let mut held = false;
+        CoreFitter.fit_resuming(sequence, method, params, finished, &mut |p| {
+            if !held && p.window.is_some_and(|w| w.window == 0) {
+                held = true;
+                std::thread::sleep(self.hold);
+            }
+            on_progress(p)
+        })
+    }
+}
+
+#[test]
+fn an_idle_worker_fits_windows_of_a_running_log_and_the_model_is_the_one_worker_model() {
+    let f = fixture();
+    let store = f.queue.store().clone();
+    // An 8-frame log of the moving grid, fitted as windows of 4 frames overlapping by 2 (3 windows).
+    let grid: Vec<[f32; 3]> =
+        (0..200).map(|i| [(i % 10) as f32 * 0.3, ((i / 10) % 10) as f32 * 0.3, (i / 100) as f32 * 0.5 + 1.0]).collect();
+    let mut sink = store.begin_sequence().unwrap();
+    for k in 0..8 {
+        sink.put_frame(&grid.iter().map(|p| [p[0] + 0.1 * k as f32, p[1], p[2]]).collect::<Vec<_>>()).unwrap();
+    }
+    // With poses (the sensor still): a log without them needs an odometry run over every frame,
+    // which helpers would each repeat, so its windows are not shared.
+    let identity = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+    let log = sink.commit(SequenceMeta { poses: Some(vec![identity; 8]), ..SequenceMeta::default() }).unwrap().id;
+    let params = FitParams {
+        window_frames: Some(4),
+        window_overlap_frames: Some(2),
+        window_iterations: Some(20),
+        hidden_width: Some(16),
+        hidden_layers: Some(2),
+        ..FitParams::default()
+    }
+    .check(Method::Ntp)
+    .unwrap();
+    let alone = JobQueue::new_job(log, Method::Ntp, params.clone());
+    f.queue.submit(&alone).unwrap();
+    let (w, _) = worker(&f, CoreFitter);
+    let alone = w.try_execute_next().unwrap().unwrap();
+    assert_eq!(alone.status, JobStatus::Succeeded);
+
+    let shared = JobQueue::new_job(log, Method::Ntp, params);
+    f.queue.submit(&shared).unwrap();
+    let (owner, _) = worker(&f, HoldFirstWindow { hold: Duration::from_secs(3) });
+    let (helper, _) = worker(&f, CoreFitter);
+    let helped = std::thread::scope(|s| {
+        let run = s.spawn(|| owner.try_execute_next());
+        wait_until_running(&f.queue, shared.id);
+        let mut helped = 0;
+        while !run.is_finished() {
+            if helper.try_help().unwrap() {
+                helped += 1;
+            } else {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+        let done = run.join().unwrap().unwrap().unwrap();
+        assert_eq!(done.status, JobStatus::Succeeded, "{:?}", done.error);
+        helped
+    });
+    // The owner held window 0 for 3 s: the helper had time for windows 1 and 2.
+    assert!(helped >= 1, "the idle worker fitted no window");
+    let load = |id| FittedModel::from_bytes(&store.read_model(id).unwrap()).unwrap();
+    let (a, b) = (load(alone.id), load(shared.id));
+    for k in [0usize, 3, 5, 7] {
+        let points: Vec<[f32; 3]> = grid.iter().take(30).map(|p| [p[0] + 0.1 * k as f32, p[1], p[2]]).collect();
+        let times: Vec<f64> = (0..8).map(|t| t as f64).collect();
+        let answer = |m: &FittedModel| -> Vec<u32> {
+            m.positions(&points, k as f64, &times).unwrap().iter().flatten().map(|c| c.to_bits()).collect()
+        };
+        assert_eq!(answer(&a), answer(&b), "frame {k}: windows fitted by two workers must stitch to the same model");
+    }
+}

@@ -99,6 +99,7 @@ impl Worker {
         // (odometry, body search, a slow store) does not lose it.
         let lost = AtomicBool::new(false);
         let done = AtomicBool::new(false);
+        let claimed = std::sync::Mutex::new(None::<String>);
         let store = &*self.queue.store;
         let lease = self.queue.settings.lease;
         std::thread::scope(|scope| {
@@ -121,9 +122,15 @@ impl Worker {
                         // The lease may still hold; the next renewal tells.
                         Err(e) => tracing::warn!(error = %e, "could not renew the job's lease"),
                     }
+                    let window = claimed.lock().unwrap_or_else(|p| p.into_inner()).clone();
+                    if let Some(key) = window
+                        && let Err(e) = store.claim_window(job.id, &key, &self.name, lease)
+                    {
+                        tracing::warn!(error = %e, "could not renew a window claim");
+                    }
                 }
             });
-            let result = self.run(job.clone(), cancel, &lost);
+            let result = self.run(job.clone(), cancel, &lost, &claimed);
             done.store(true, Ordering::Relaxed);
             heartbeat.thread().unpark();
             match result {
@@ -141,7 +148,13 @@ impl Worker {
     }
 
     /// One run of a claimed job; [`StoreError::LeaseLost`] once the lease is gone.
-    fn run(&self, mut job: JobRecord, cancel: &AtomicBool, lost: &AtomicBool) -> Result<JobRecord, StoreError> {
+    fn run(
+        &self,
+        mut job: JobRecord,
+        cancel: &AtomicBool,
+        lost: &AtomicBool,
+        claimed: &std::sync::Mutex<Option<String>>,
+    ) -> Result<JobRecord, StoreError> {
         tracing::info!(attempt = job.attempts, "fit started");
         let store = self.queue.store.clone();
         let worker = self.name.as_str();
@@ -170,6 +183,9 @@ impl Worker {
         let mut finished = StoredWindows {
             store: &*store,
             job: job.id,
+            worker,
+            lease: self.queue.settings.lease,
+            claimed,
             checkpoint_every: self.queue.settings.checkpoint_every,
             last_checkpoint: Instant::now(),
             resumed_from: &resumed_from,
@@ -287,6 +303,136 @@ impl Worker {
     }
 }
 
+impl Worker {
+    /// With no job to claim: fits one window of a running job's long log that no worker has
+    /// claimed or finished (the job's own worker takes it from the store), so that the windows
+    /// of one log spread over idle workers. Returns whether it did any work. Blocking.
+    pub fn try_help(&self) -> Result<bool, StoreError> {
+        let store = &*self.queue.store;
+        let filter =
+            crate::store::JobFilter { status: Some(crate::store::JobStatus::Running), sequence_id: None, limit: 100 };
+        let mut running = store.list_jobs(&filter)?;
+        // Oldest first: help the job that has waited longest.
+        running.reverse();
+        for job in running {
+            if job.worker.as_deref() == Some(self.name.as_str()) {
+                continue;
+            }
+            let Ok(sequence) = StoredFrames::open(store, &job) else { continue };
+            if !crate::fit::windows::windows_can_be_shared(&sequence, &job.params) {
+                continue;
+            }
+            let frames = job.params.window_frames;
+            let starts =
+                crate::fit::windows::window_starts(sequence.frame_count(), frames, job.params.window_overlap_frames);
+            for (w, &start) in starts.iter().enumerate() {
+                if store.read_window_model(job.id, &StoredWindows::key(start, frames))?.is_some() {
+                    continue;
+                }
+                let key = StoredWindows::claim_key(start, frames);
+                if !store.claim_window(job.id, &key, &self.name, self.queue.settings.lease)? {
+                    continue;
+                }
+                // Kept between the look above and the claim: nothing to do.
+                if store.read_window_model(job.id, &StoredWindows::key(start, frames))?.is_some() {
+                    store.release_window(job.id, &key, &self.name)?;
+                    continue;
+                }
+                self.help_with(&job, &sequence, w, start, &key);
+                if let Err(e) = store.release_window(job.id, &key, &self.name) {
+                    tracing::warn!(error = %e, "could not release a window claim (it expires on its own)");
+                }
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Fits window `window` of `job` (claimed under `key`) and keeps its model for the job's
+    /// worker, renewing the claim beside the fit; stops when the claim is lost (the job ended
+    /// or was cancelled) or the worker shuts down.
+    #[tracing::instrument(skip_all, fields(job_id = %job.id, window, worker = %self.name))]
+    fn help_with(&self, job: &JobRecord, sequence: &StoredFrames<'_>, window: usize, start: usize, key: &str) {
+        let store = &*self.queue.store;
+        let lease = self.queue.settings.lease;
+        let lost = AtomicBool::new(false);
+        let done = AtomicBool::new(false);
+        tracing::info!(first_frame = start, "helping: fitting a window of another worker's job");
+        let started = Instant::now();
+        std::thread::scope(|scope| {
+            let heartbeat = scope.spawn(|| {
+                while !done.load(Ordering::Relaxed) {
+                    std::thread::park_timeout(lease / 3);
+                    if done.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    match store.claim_window(job.id, key, &self.name, lease) {
+                        Ok(true) => {}
+                        Ok(false) => {
+                            lost.store(true, Ordering::Relaxed);
+                            break;
+                        }
+                        Err(e) => tracing::warn!(error = %e, "could not renew a window claim"),
+                    }
+                }
+            });
+            let resumed = AtomicUsize::new(usize::MAX);
+            let claimed = std::sync::Mutex::new(None);
+            let mut checkpoints = StoredWindows {
+                store,
+                job: job.id,
+                worker: &self.name,
+                lease,
+                claimed: &claimed,
+                checkpoint_every: self.queue.settings.checkpoint_every,
+                last_checkpoint: Instant::now(),
+                resumed_from: &resumed,
+            };
+            let mut on_progress = |_: &Progress| {
+                if lost.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed) {
+                    ControlFlow::Break(())
+                } else {
+                    ControlFlow::Continue(())
+                }
+            };
+            let fitted = std::panic::catch_unwind(AssertUnwindSafe(|| {
+                self.pool.install(|| {
+                    // Built here: the fit runs on the pool's threads.
+                    let frames = job.params.window_frames;
+                    let mut window_checkpoints =
+                        crate::fit::windows::KeptCheckpoints::new(&mut checkpoints, start, frames);
+                    crate::fit::windows::fit_window(
+                        sequence,
+                        job.method,
+                        &job.params,
+                        window,
+                        &mut window_checkpoints,
+                        &mut on_progress,
+                    )
+                })
+            }));
+            done.store(true, Ordering::Relaxed);
+            heartbeat.thread().unpark();
+            match fitted {
+                Ok(Ok(model)) => match model.to_bytes() {
+                    Ok(bytes) => match store.put_window_model(
+                        job.id,
+                        &StoredWindows::key(start, job.params.window_frames),
+                        &bytes,
+                    ) {
+                        Ok(()) => tracing::info!(seconds = started.elapsed().as_secs_f64(), "helping: window kept"),
+                        Err(e) => tracing::warn!(error = %e, "helping: could not keep the window"),
+                    },
+                    // The job's worker fits it again and fails the job with the reason.
+                    Err(e) => tracing::warn!(error = %e, "helping: the window holds a non-finite number"),
+                },
+                Ok(Err(e)) => tracing::info!(error = %e, "helping: the window's fit stopped"),
+                Err(_) => tracing::error!("helping: the window's fit panicked"),
+            }
+        });
+    }
+}
+
 /// The finished windows and the latest mid-fit checkpoint of one job, kept in the store
 /// (`windows/{job}/` of the data directory, or of the object store) until the job finishes, so
 /// that a job run again after a shutdown or a crash, on this worker or another, skips them. A
@@ -295,6 +441,11 @@ impl Worker {
 struct StoredWindows<'a> {
     store: &'a dyn crate::store::Store,
     job: uuid::Uuid,
+    /// The worker fitting, and the lease of its window claims.
+    worker: &'a str,
+    lease: Duration,
+    /// The window claim this worker holds now (renewed by its heartbeat).
+    claimed: &'a std::sync::Mutex<Option<String>>,
     checkpoint_every: Duration,
     last_checkpoint: Instant,
     /// Set when a window's fit goes on from a checkpoint: the iteration it went on from.
@@ -308,6 +459,10 @@ impl StoredWindows<'_> {
 
     fn checkpoint_key(first_frame: usize, frames: usize) -> String {
         format!("checkpoint-{first_frame}-{frames}")
+    }
+
+    fn claim_key(first_frame: usize, frames: usize) -> String {
+        format!("w-{first_frame}-{frames}")
     }
 }
 
@@ -358,6 +513,30 @@ impl FinishedWindows for StoredWindows<'_> {
 
     fn resumed(&mut self, _first_frame: usize, _frames: usize, iteration: usize) {
         self.resumed_from.store(iteration, Ordering::Relaxed);
+    }
+
+    fn claim(&mut self, first_frame: usize, frames: usize) -> bool {
+        let key = Self::claim_key(first_frame, frames);
+        match self.store.claim_window(self.job, &key, self.worker, self.lease) {
+            Ok(true) => {
+                *self.claimed.lock().unwrap_or_else(|p| p.into_inner()) = Some(key);
+                true
+            }
+            Ok(false) => false,
+            // Without the claim table the window is fitted here: at worst twice, never lost.
+            Err(e) => {
+                tracing::warn!(error = %e, first_frame, "could not claim a window; fitting it here");
+                true
+            }
+        }
+    }
+
+    fn release(&mut self, first_frame: usize, frames: usize) {
+        let key = Self::claim_key(first_frame, frames);
+        self.claimed.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Err(e) = self.store.release_window(self.job, &key, self.worker) {
+            tracing::warn!(error = %e, first_frame, "could not release a window claim (it expires on its own)");
+        }
     }
 }
 
@@ -451,7 +630,14 @@ fn worker_loop(worker: &Worker) {
     while !worker.shutdown.load(Ordering::Relaxed) {
         match worker.try_execute_next() {
             Ok(Some(_)) => {}
-            Ok(None) => worker.queue.wake.wait(IDLE_POLL),
+            Ok(None) => match worker.try_help() {
+                Ok(true) => {}
+                Ok(false) => worker.queue.wake.wait(IDLE_POLL),
+                Err(e) => {
+                    tracing::error!(error = %e, "worker could not look for windows to help with; retrying");
+                    worker.queue.wake.wait(IDLE_POLL);
+                }
+            },
             Err(e) => {
                 tracing::error!(error = %e, "worker could not use the store; retrying");
                 std::thread::sleep(IDLE_POLL);

@@ -337,6 +337,14 @@ pub trait Store: Send + Sync + 'static {
     /// fitted as windows, or a mid-fit checkpoint, so that the job, run again after a restart
     /// or on another worker, need not fit it again. Removed when the job finishes.
     fn put_window_model(&self, job_id: Uuid, key: &str, model: &[u8]) -> Result<(), StoreError>;
+    /// Claims window `key` of running job `id` for `worker` under a lease of `lease` (renewed
+    /// when the worker holds it already), so that several workers fit the windows of one long
+    /// log side by side without fitting one twice: `true` when the worker holds it now, `false`
+    /// when another worker's live lease holds it or the job is not running. Claims end with the
+    /// job.
+    fn claim_window(&self, id: Uuid, key: &str, worker: &str, lease: std::time::Duration) -> Result<bool, StoreError>;
+    /// Lets go of a window `worker` claimed (its model is kept, or its fit stopped).
+    fn release_window(&self, id: Uuid, key: &str, worker: &str) -> Result<(), StoreError>;
     /// A window model kept by [`Store::put_window_model`] for this job, if any.
     fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError>;
     /// Number of jobs in each status (statuses without jobs are absent).

@@ -18,7 +18,8 @@ use super::{
 use crate::fit::Method;
 use crate::geometry::Point;
 
-/// Schema version stored in `PRAGMA user_version` (2: a running job's worker and lease).
+/// Schema version stored in `PRAGMA user_version` (2: a running job's worker and lease, and
+/// the claims of windows fitted by other workers).
 const SCHEMA_VERSION: i64 = 2;
 
 const SCHEMA: &str = "
@@ -47,6 +48,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     lease_expires_at INTEGER
 );
 CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status);
+CREATE TABLE IF NOT EXISTS window_claims (
+    job_id TEXT NOT NULL,
+    key TEXT NOT NULL,
+    worker TEXT NOT NULL,
+    lease_expires_at INTEGER NOT NULL,
+    PRIMARY KEY (job_id, key)
+);
 CREATE INDEX IF NOT EXISTS jobs_by_sequence ON jobs (sequence_id);
 ";
 
@@ -452,6 +460,10 @@ impl Store for SqliteStore {
                 .prepare("SELECT id FROM jobs WHERE sequence_id = ?1")?
                 .query_map([&key], |r| r.get(0))?
                 .collect::<Result<Vec<String>, _>>()?;
+            tx.execute(
+                "DELETE FROM window_claims WHERE job_id IN (SELECT id FROM jobs WHERE sequence_id = ?1)",
+                [&key],
+            )?;
             tx.execute("DELETE FROM jobs WHERE sequence_id = ?1", [&key])?;
             tx.execute("DELETE FROM sequences WHERE id = ?1", [&key])?;
             tx.commit()?;
@@ -634,6 +646,7 @@ impl Store for SqliteStore {
              lease_expires_at = NULL WHERE id = ?1",
             params![key, status.as_str(), error, json(&job.progress), now_ms()],
         )?;
+        conn.execute("DELETE FROM window_claims WHERE job_id = ?1", [&key])?;
         let job = require_job(&conn, id)?;
         drop(conn);
         // The job will not run again: its kept windows and checkpoints are of no more use. If
@@ -717,6 +730,36 @@ impl Store for SqliteStore {
         let path = self.inner.dir.window_model_path(&job_id.to_string(), key);
         fs::create_dir_all(path.parent().expect("a window model has a directory"))?;
         files::write_atomic(&path, |w| std::io::Write::write_all(w, model))?;
+        Ok(())
+    }
+
+    fn claim_window(&self, id: Uuid, key: &str, worker: &str, lease: std::time::Duration) -> Result<bool, StoreError> {
+        let mut conn = self.inner.conn();
+        let tx = conn.transaction()?;
+        let running = tx
+            .query_row("SELECT 1 FROM jobs WHERE id = ?1 AND status = 'running'", [id.to_string()], |_| Ok(()))
+            .optional()?
+            .is_some();
+        if !running {
+            return Ok(false);
+        }
+        let now = now_ms();
+        let n = tx.execute(
+            "INSERT INTO window_claims (job_id, key, worker, lease_expires_at) VALUES (?1, ?2, ?3, ?4) \
+             ON CONFLICT (job_id, key) DO UPDATE SET worker = excluded.worker, \
+             lease_expires_at = excluded.lease_expires_at \
+             WHERE window_claims.worker = excluded.worker OR window_claims.lease_expires_at < ?5",
+            params![id.to_string(), key, worker, now.saturating_add(lease_ms(lease)), now],
+        )?;
+        tx.commit()?;
+        Ok(n == 1)
+    }
+
+    fn release_window(&self, id: Uuid, key: &str, worker: &str) -> Result<(), StoreError> {
+        self.inner.conn().execute(
+            "DELETE FROM window_claims WHERE job_id = ?1 AND key = ?2 AND worker = ?3",
+            params![id.to_string(), key, worker],
+        )?;
         Ok(())
     }
 
@@ -1073,6 +1116,38 @@ mod tests {
         assert_eq!(store.get_job(id).unwrap().unwrap().status, JobStatus::Queued);
         let run = store.claim_next_job(&claim()).unwrap().unwrap();
         assert_eq!((run.id, run.worker.as_deref()), (id, Some(WORKER)));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_window_is_claimed_by_one_worker_until_its_lease_expires_or_it_is_released() {
+        let dir = temp_dir();
+        let store = SqliteStore::open(&dir).unwrap();
+        let seq = sequence(&store);
+        let a = job(seq.id);
+        store.insert_job(&a).unwrap();
+        let ms = std::time::Duration::from_millis;
+        // Not running yet: nothing to help with.
+        assert!(!store.claim_window(a.id, "w-0-25", "w1", ms(60_000)).unwrap());
+        store.claim_next_job(&claim()).unwrap();
+        assert!(store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
+        assert!(!store.claim_window(a.id, "w-0-25", "w2", ms(60_000)).unwrap());
+        assert!(store.claim_window(a.id, "w-20-25", "w2", ms(60_000)).unwrap());
+        // Renewed by its holder; taken over once expired.
+        assert!(store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
+        std::thread::sleep(ms(250));
+        assert!(store.claim_window(a.id, "w-0-25", "w2", ms(60_000)).unwrap());
+        assert!(!store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
+        // Released (by its holder only), then free for anyone.
+        store.release_window(a.id, "w-20-25", "w1").unwrap();
+        assert!(!store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
+        store.release_window(a.id, "w-20-25", "w2").unwrap();
+        assert!(store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
+        // The job's end ends its claims.
+        store.finish_job(a.id, WORKER, JobOutcome::Cancelled).unwrap();
+        assert!(!store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
+        let claims: i64 = store.inner.conn().query_row("SELECT COUNT(*) FROM window_claims", [], |r| r.get(0)).unwrap();
+        assert_eq!(claims, 0);
         fs::remove_dir_all(&dir).unwrap();
     }
 }
