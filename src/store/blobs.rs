@@ -49,6 +49,11 @@ const S3_CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// created when absent), `s3://BUCKET/PREFIX` (endpoint, region and credentials from the
 /// usual AWS_* environment variables: AWS_ENDPOINT_URL, AWS_REGION, AWS_ACCESS_KEY_ID,
 /// AWS_SECRET_ACCESS_KEY, AWS_ALLOW_HTTP for a plain-HTTP endpoint) and `memory://` (tests).
+///
+/// Keys are segments of `[A-Za-z0-9._-]` joined by single `/` (no empty, `.` or `..` segment);
+/// other keys are errors. A prefix is such a key followed by `/`, or empty for the whole store.
+/// S3 requests time out after 60 s (5 s to connect) and are retried with `object_store`'s
+/// defaults (up to 10 times within 3 minutes).
 pub struct ObjectBlobs {
     store: Arc<dyn ObjectStore>,
     url: String,
@@ -662,6 +667,12 @@ mod tests {
         let b = Arc::clone(&blobs);
         let got = outer.block_on(async move { tokio::task::spawn_blocking(move || b.get("models/job.mbnt")).await });
         assert_eq!(got.unwrap().unwrap(), Some(vec![1, 2]));
+        // A store that has made requests (its HTTP client holds pooled connections) dropped on
+        // an async worker thread of another runtime.
+        outer.block_on(async move {
+            assert_eq!(other.list("").unwrap(), Vec::<String>::new());
+            drop(other);
+        });
         assert_eq!(blobs.delete_prefix("").unwrap(), 1);
         eprintln!("S3 checks took {:.1} s", suite.elapsed().as_secs_f64());
     }
