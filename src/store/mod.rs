@@ -7,6 +7,7 @@
 //! touching the routes or the workers. Methods are blocking: async callers run them on
 //! `spawn_blocking`.
 
+pub mod blobs;
 pub mod files;
 pub mod sqlite;
 
@@ -19,6 +20,7 @@ use uuid::Uuid;
 use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams, WindowProgress};
 use crate::geometry::Point;
 
+pub use blobs::{Blobs, ObjectBlobs};
 pub use sqlite::SqliteStore;
 
 /// A stored sequence's metadata (its frames live beside it, see [`Store::read_frame`]).
