@@ -4,6 +4,7 @@ processes on one PostgreSQL database and one object store (a local directory).
 
     python3 scripts/fleet_demo.py kill          # 2 workers, 4 jobs, one worker killed mid-fit
     python3 scripts/fleet_demo.py throughput    # jobs per hour with 1 and with 2 workers
+    python3 scripts/fleet_demo.py windows       # one long log: its windows on 1 and on 2 workers
 
 Needs a PostgreSQL server (MBNT_TEST_DATABASE_URL, default postgres://postgres@127.0.0.1:5432/postgres,
 whose user may create databases) and `psql`; builds nothing: set MBNT_BIN (default
@@ -60,7 +61,7 @@ class Proc:
 
 
 class Fleet:
-    def __init__(self, workers):
+    def __init__(self, workers, checkpoint_every_s="0"):
         self.root = tempfile.mkdtemp(prefix="mbnt-fleet-")
         self.db = f"mbnt_demo_{uuid.uuid4().hex}"
         psql(f"CREATE DATABASE {self.db}")
@@ -69,7 +70,7 @@ class Fleet:
         self.env = dict(os.environ, RUST_LOG="info", NO_COLOR="1",
                         MBNT_DATABASE_URL=f"{base}/{self.db}",
                         MBNT_OBJECT_STORE_URL=f"file://{self.root}/objects",
-                        MBNT_LEASE_S="2", MBNT_CHECKPOINT_EVERY_S="0")
+                        MBNT_LEASE_S="2", MBNT_CHECKPOINT_EVERY_S=checkpoint_every_s)
         self.env.pop("MBNT_API_TOKEN", None)
         self.api = self.start_api()
         self.workers = [Proc(["worker", "--threads-per-job", "1", "--data-dir", f"{self.root}/w{i}"], self.env,
@@ -173,7 +174,7 @@ def throughput(jobs=8, iterations=400):
           f"workers of one thread each")
     rows = []
     for n in (1, 2):
-        fleet = Fleet(workers=n)
+        fleet = Fleet(workers=n, checkpoint_every_s="30")
         try:
             t0 = time.time()
             ids = submit(fleet, jobs, iterations)
@@ -191,6 +192,47 @@ def throughput(jobs=8, iterations=400):
     print(f"speed-up with 2 workers: {rows[0][1] / rows[1][1]:.2f}x")
 
 
+def upload_simulated(fleet, seed, frames):
+    """Uploads `mbnt simulate --seed SEED --frames FRAMES` (KITTI .bin frames, times, poses)."""
+    out = f"{fleet.root}/sim{seed}"
+    subprocess.run([MBNT, "simulate", "--seed", str(seed), "--frames", str(frames), "--out", out], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    times = [float(x) for x in open(f"{out}/timestamps.txt").read().split()]
+    poses = [[float(x) for x in line.split()] for line in open(f"{out}/poses.txt") if line.strip()]
+    meta = json.dumps({"name": f"sim{seed}", "timestamps": times, "poses": poses})
+    files = sorted(os.listdir(f"{out}/frames"))
+    args = ["curl", "-s", "-F", f"meta={meta};type=application/json"]
+    for f in files:
+        args += ["-F", f"frame=@{out}/frames/{f}"]
+    answer = subprocess.run([*args, fleet.base + "/v1/sequences"], check=True, capture_output=True).stdout
+    return json.loads(answer)["id"]
+
+
+def windows(seed=135, frames=60, window_iterations=40):
+    print(f"one MBNT job (defaults, window_iterations {window_iterations}) on simulated log {seed} of {frames} "
+          f"frames with poses; workers of one thread each")
+    rows = []
+    for n in (1, 2):
+        fleet = Fleet(workers=n, checkpoint_every_s="30")
+        try:
+            seq = upload_simulated(fleet, seed, frames)
+            t0 = time.time()
+            job = fleet.call("POST", "/v1/jobs", {"sequence_id": seq, "method": "mbnt",
+                                                 "params": {"window_iterations": window_iterations}})["id"]
+            view = wait_all(fleet, [job])[job]
+            wall = time.time() - t0
+            logs = "".join(open(w.log_path).read() for w in fleet.workers)
+            helped = logs.count("helping: window kept")
+            windows_total = view["progress"]["window"]["windows"] if view["progress"].get("window") else 1
+            rows.append((n, wall, helped, windows_total))
+        finally:
+            fleet.close()
+    print(f"{'workers':>7} {'wall s':>8} {'windows':>7} {'fitted by the helper':>20}")
+    for n, wall, helped, total in rows:
+        print(f"{n:>7} {wall:>8.1f} {total:>7} {helped:>20}")
+    print(f"speed-up with 2 workers: {rows[0][1] / rows[1][1]:.2f}x")
+
+
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "kill"
-    {"kill": kill_demo, "throughput": throughput}[what]()
+    {"kill": kill_demo, "throughput": throughput, "windows": windows}[what]()
