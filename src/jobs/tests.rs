@@ -587,3 +587,44 @@ fn an_idle_worker_fits_windows_of_a_running_log_and_the_model_is_the_one_worker_
         assert_eq!(answer(&a), answer(&b), "frame {k}: windows fitted by two workers must stitch to the same model");
     }
 }
+
+#[test]
+fn a_torn_checkpoint_is_ignored_and_the_previous_one_survives_a_failed_write() {
+    let settings = WorkerSettings { checkpoint_every: Duration::ZERO, ..WorkerSettings::default() };
+    let f = fixture_with(settings);
+    let params = FitParams {
+        iterations: Some(30),
+        validate_every: Some(5),
+        validation_patience: Some(0),
+        hidden_width: Some(16),
+        hidden_layers: Some(2),
+        ..FitParams::default()
+    }
+    .check(Method::Ntp)
+    .unwrap();
+    let job = JobQueue::new_job(f.sequence, Method::Ntp, params);
+    f.queue.submit(&job).unwrap();
+    let (w, _) = worker(&f, StopOnce { stop_at: 12, stopped: AtomicBool::new(false) });
+    assert_eq!(w.try_execute_next().unwrap().unwrap().status, JobStatus::Queued);
+    let store = f.queue.store();
+    let key = "checkpoint-0-2";
+    let kept = store.read_window_model(job.id, key).unwrap().expect("a checkpoint was kept at iteration 10");
+    // A write that dies half-way (the kill of issue 22) never replaces the kept file: the store
+    // writes a temporary and renames it.
+    let dir = std::env::temp_dir().join(format!("mbnt-torn-{}", Uuid::new_v4()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("checkpoint.mbnt");
+    crate::store::files::write_atomic(&path, |w| std::io::Write::write_all(w, &kept)).unwrap();
+    let torn = crate::store::files::write_atomic(&path, |w| {
+        std::io::Write::write_all(w, &kept[..kept.len() / 2])?;
+        Err(std::io::Error::other("killed mid-write"))
+    });
+    assert!(torn.is_err());
+    assert_eq!(std::fs::read(&path).unwrap(), kept);
+    std::fs::remove_dir_all(&dir).unwrap();
+    // A checkpoint torn by other means (a store without atomic writes) is refused by its checksum:
+    // the job starts over from iteration 0 and still succeeds.
+    store.put_window_model(job.id, key, &kept[..kept.len() / 2]).unwrap();
+    let done = w.try_execute_next().unwrap().unwrap();
+    assert_eq!((done.status, done.progress.resumed_from_iteration), (JobStatus::Succeeded, None));
+}
