@@ -196,7 +196,8 @@ pub fn fit_log(
             timestamps_s: sequence.timestamps_s().map(|ts| ts[range.clone()].to_vec()),
             poses: world.as_ref().map(|poses| poses[range].to_vec()),
         };
-        let mut checkpoints = WindowCheckpoints { finished: &mut *finished, first_frame: start, frames: params.window_frames };
+        let mut checkpoints =
+            WindowCheckpoints { finished: &mut *finished, first_frame: start, frames: params.window_frames };
         let model = fit_single(&part, method, &window_params, &mut checkpoints, &mut |p: &Progress| {
             on_progress(&Progress { window: Some(position), ..p.clone() })
         })?;

@@ -80,8 +80,7 @@ impl Worker {
     /// takes).
     pub fn try_execute_next(&self) -> Result<Option<JobRecord>, StoreError> {
         let settings = &self.queue.settings;
-        let claim =
-            Claim { worker: self.name.clone(), lease: settings.lease, max_attempts: settings.max_attempts };
+        let claim = Claim { worker: self.name.clone(), lease: settings.lease, max_attempts: settings.max_attempts };
         let Some(job) = self.queue.store.claim_next_job(&claim)? else {
             return Ok(None);
         };
@@ -232,8 +231,7 @@ impl Worker {
                 last_publish = now;
                 self.queue.publish(&job);
             }
-            if cancel.load(Ordering::Relaxed) || lost.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed)
-            {
+            if cancel.load(Ordering::Relaxed) || lost.load(Ordering::Relaxed) || self.shutdown.load(Ordering::Relaxed) {
                 ControlFlow::Break(())
             } else {
                 ControlFlow::Continue(())

@@ -12,8 +12,8 @@ use uuid::Uuid;
 
 use super::files::{self, DataDir};
 use super::{
-    CancelOutcome, Claim, DeleteOutcome, LeaseStatus, FrameSink, JobFilter, JobOutcome, JobProgress, JobRecord, JobStatus, SequenceMeta,
-    SequenceRecord, Store, StoreError, now_ms,
+    CancelOutcome, Claim, DeleteOutcome, FrameSink, JobFilter, JobOutcome, JobProgress, JobRecord, JobStatus,
+    LeaseStatus, SequenceMeta, SequenceRecord, Store, StoreError, now_ms,
 };
 use crate::fit::Method;
 use crate::geometry::Point;
