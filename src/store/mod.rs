@@ -7,7 +7,9 @@
 //! touching the routes or the workers. Methods are blocking: async callers run them on
 //! `spawn_blocking`.
 
+pub mod blobs;
 pub mod files;
+pub mod postgres;
 pub mod sqlite;
 
 use serde::{Deserialize, Serialize};
@@ -16,6 +18,7 @@ use uuid::Uuid;
 use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams, WindowProgress};
 use crate::geometry::Point;
 
+pub use postgres::PgStore;
 pub use sqlite::SqliteStore;
 
 /// A stored sequence's metadata (its frames live beside it, see [`Store::read_frame`]).
