@@ -467,6 +467,22 @@ impl Drop for PgFrameSink {
         if self.committed {
             return;
         }
+        // A commit whose answer was lost (the connection broke after COMMIT) may have
+        // succeeded: the row decides. Unknown (no database) leaves it all to the janitor.
+        let committed = self.inner.run(async {
+            sqlx::query_scalar::<_, bool>("SELECT EXISTS (SELECT 1 FROM sequences WHERE id = $1)")
+                .bind(self.id)
+                .fetch_one(&self.inner.pool)
+                .await
+        });
+        match committed {
+            Ok(false) => {}
+            Ok(true) => return,
+            Err(e) => {
+                tracing::warn!(upload = %self.id, error = %e, "could not tell whether an abandoned upload committed");
+                return;
+            }
+        }
         // Objects first, then the row: if this fails half-way, the row (or, once the row is
         // gone, the orphan rule) lets the janitor finish the job.
         if let Err(e) = self.inner.blobs().delete_prefix(&sequence_prefix(self.id)) {
