@@ -159,12 +159,34 @@ fn url_password(url: &str) -> Option<&str> {
     (!password.is_empty()).then_some(password)
 }
 
-/// `text` with every occurrence of `url`'s password replaced by `***`.
+/// `text` with every occurrence of `url`'s password, as written or percent-decoded, replaced by
+/// `***`.
 fn redact_password(text: &str, url: &str) -> String {
     match url_password(url) {
-        Some(password) => text.replace(password, "***"),
+        Some(password) => text.replace(password, "***").replace(&percent_decode(password), "***"),
         None => text.to_string(),
     }
+}
+
+/// `%XX` escapes decoded (invalid ones kept as they are), as URL parsers read a password.
+fn percent_decode(text: &str) -> String {
+    let bytes = text.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = bytes.get(i + 1..i + 3).and_then(|h| std::str::from_utf8(h).ok());
+        match hex.filter(|_| bytes[i] == b'%').and_then(|h| u8::from_str_radix(h, 16).ok()) {
+            Some(byte) => {
+                out.push(byte);
+                i += 3;
+            }
+            None => {
+                out.push(bytes[i]);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
 }
 
 impl PgStore {

@@ -147,6 +147,8 @@ fn urls_lose_their_password_in_messages() {
     assert_eq!(redact_url("postgres://u:hunter2@h:5432/db?x=1"), "postgres://u:***@h:5432/db?x=1");
     assert_eq!(redact_url("postgres://u@h/db"), "postgres://u@h/db");
     assert_eq!(url_password("postgres://u:p:q@h/db"), Some("p:q"));
+    assert_eq!(redact_password("bad password p@ss%zz for u", "postgres://u:p%40ss%zz@h/db"), "bad password *** for u");
+    assert_eq!(percent_decode("a%2Fb%%41%4"), "a/b%A%4");
     assert_eq!(with_database("postgres://u@h:1/postgres?sslmode=disable", "x"), "postgres://u@h:1/x?sslmode=disable");
     assert_eq!(with_database("postgres://u@h:1", "x"), "postgres://u@h:1/x");
 }
