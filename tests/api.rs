@@ -842,12 +842,14 @@ async fn a_job_interrupted_by_a_restart_runs_again_and_the_sequence_is_intact() 
     let running = s.wait_job(&job, Duration::from_secs(30), |j| j["progress"]["iteration"].as_u64() > Some(0)).await;
     assert_eq!(running["status"], "running");
     let dir = s.stop().await;
-    // The stop put the job back in the queue; make the database look as after a crash
-    // (kill -9 mid-fit: the row still says running), which the next start must recover.
+    // The stop put the job back in the queue, giving its attempt back; make the database look
+    // as after a crash (kill -9 mid-fit: the row still says running and the attempt counts),
+    // which the next start must recover.
     let db = rusqlite::Connection::open(dir.join("mbnt.sqlite3")).unwrap();
     let status: String = db.query_row("SELECT status FROM jobs WHERE id = ?1", [&job], |r| r.get(0)).unwrap();
     assert_eq!(status, "queued");
-    assert_eq!(db.execute("UPDATE jobs SET status = 'running' WHERE id = ?1", [&job]).unwrap(), 1);
+    let crashed = "UPDATE jobs SET status = 'running', attempts = attempts + 1 WHERE id = ?1";
+    assert_eq!(db.execute(crashed, [&job]).unwrap(), 1);
     drop(db);
 
     let s = TestServer::start_with(Options { dir: Some(dir.clone()), ..Options::default() }).await;
