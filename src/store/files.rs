@@ -12,7 +12,7 @@
 //! - `tmp/`: raw upload parts while they stream in.
 
 use std::fs::{self, File};
-use std::io::{self, BufReader, BufWriter, Read, Write};
+use std::io::{self, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use crate::geometry::Point;
@@ -155,25 +155,26 @@ pub fn write_frame_file(path: &Path, points: &[Point]) -> io::Result<()> {
 
 /// Reads a frame written by [`write_frame`].
 pub fn read_frame(path: &Path) -> io::Result<Vec<Point>> {
-    let file = File::open(path)?;
-    let file_len = file.metadata()?.len();
-    let mut r = BufReader::new(file);
-    let mut header = [0u8; 16];
-    r.read_exact(&mut header)?;
-    if &header[..8] != FRAME_MAGIC {
-        return Err(io::Error::new(io::ErrorKind::InvalidData, format!("{} is not a frame file", path.display())));
+    let mut bytes = Vec::new();
+    File::open(path)?.read_to_end(&mut bytes)?;
+    // The path leads the message, as callers (and their users) expect to see which file it was.
+    parse_frame(&bytes).map_err(|e| io::Error::new(e.kind(), format!("{} {e}", path.display())))
+}
+
+/// Decodes the bytes of a frame written by [`write_frame`] (a whole frame file, or an object of
+/// an object store). A bad magic or a length that disagrees with the point count is
+/// [`io::ErrorKind::InvalidData`].
+pub fn parse_frame(bytes: &[u8]) -> io::Result<Vec<Point>> {
+    let invalid = |what: String| io::Error::new(io::ErrorKind::InvalidData, what);
+    if bytes.len() < 16 || &bytes[..8] != FRAME_MAGIC {
+        return Err(invalid("is not a frame file".to_string()));
     }
-    let count = u64::from_le_bytes(header[8..].try_into().expect("8 bytes"));
-    if Some(file_len) != count.checked_mul(12).and_then(|b| b.checked_add(16)) {
-        return Err(io::Error::new(
-            io::ErrorKind::InvalidData,
-            format!("{} is truncated ({file_len} bytes for {count} points)", path.display()),
-        ));
+    let count = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes"));
+    let len_bytes = bytes.len() as u64;
+    if Some(len_bytes) != count.checked_mul(12).and_then(|b| b.checked_add(16)) {
+        return Err(invalid(format!("is truncated ({len_bytes} bytes for {count} points)")));
     }
-    let count = usize::try_from(count).map_err(io::Error::other)?;
-    let mut bytes = vec![0u8; count * 12];
-    r.read_exact(&mut bytes)?;
-    Ok(bytes
+    Ok(bytes[16..]
         .chunks_exact(12)
         .map(|c| {
             let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().expect("4 bytes"));
@@ -211,6 +212,25 @@ mod tests {
         fs::write(&path, &bytes[..bytes.len() - 4]).unwrap();
         assert_eq!(read_frame(&path).unwrap_err().kind(), io::ErrorKind::InvalidData);
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn parse_frame_reads_what_write_frame_wrote_and_refuses_damage() {
+        let points = vec![[0.5, -1.0, f32::MAX], [-0.0, 3.0, 1e-40]];
+        let mut bytes = Vec::new();
+        write_frame(&mut bytes, &points).unwrap();
+        let back = parse_frame(&bytes).unwrap();
+        assert_eq!(
+            back.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>(),
+            points.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>()
+        );
+        let longer = [bytes.as_slice(), &[0]].concat();
+        for damaged in [&[][..], &bytes[..bytes.len() - 1], &bytes[..10], &longer[..]] {
+            assert_eq!(parse_frame(damaged).unwrap_err().kind(), io::ErrorKind::InvalidData);
+        }
+        let mut bad_magic = bytes.clone();
+        bad_magic[0] = b'X';
+        assert_eq!(parse_frame(&bad_magic).unwrap_err().kind(), io::ErrorKind::InvalidData);
     }
 
     #[test]

@@ -9,6 +9,7 @@
 
 pub mod blobs;
 pub mod files;
+pub mod postgres;
 pub mod sqlite;
 
 use std::path::PathBuf;
@@ -21,6 +22,7 @@ use crate::fit::{LossTerms, Method, TrackingProgress, ValidFitParams, WindowProg
 use crate::geometry::Point;
 
 pub use blobs::{Blobs, ObjectBlobs};
+pub use postgres::PgStore;
 pub use sqlite::SqliteStore;
 
 /// A stored sequence's metadata (its frames live beside it, see [`Store::read_frame`]).
@@ -395,8 +397,23 @@ fn open_fleet(
     database_url: &str,
     object_store_url: Option<&str>,
 ) -> Result<(Arc<dyn Store>, PathBuf), StoreError> {
-    let _ = (data_dir, database_url, object_store_url);
-    Err(StoreError::InUse("the fleet store is not in this build yet".into()))
+    let default_objects;
+    let object_store_url = match object_store_url {
+        Some(url) => url,
+        None => {
+            let dir = std::path::absolute(data_dir.join("objects"))?;
+            std::fs::create_dir_all(&dir)?;
+            default_objects = format!("file://{}", dir.display());
+            &default_objects
+        }
+    };
+    let blobs = ObjectBlobs::from_url(object_store_url)?;
+    tracing::info!(objects = blobs.url(), "fleet store: PostgreSQL and an object store");
+    let store = PgStore::connect(database_url, Arc::new(blobs))?;
+    // Upload parts stream to local scratch space before their frames go to the object store.
+    let tmp = data_dir.join("tmp");
+    std::fs::create_dir_all(&tmp)?;
+    Ok((Arc::new(store), tmp))
 }
 
 /// Milliseconds since the Unix epoch, now.
