@@ -122,8 +122,11 @@ impl Proc {
         let _ = self.child.wait();
     }
 
-    /// SIGTERM, then wait for the orderly stop.
+    /// SIGTERM, then wait for the orderly stop (nothing when it has exited already).
     fn stop(&mut self) {
+        if matches!(self.child.try_wait(), Ok(Some(_))) {
+            return;
+        }
         let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
         let _ = self.child.wait();
     }

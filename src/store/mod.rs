@@ -443,6 +443,40 @@ pub fn rfc3339(ms: i64) -> String {
     format!("{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{millis:03}Z", sod / 3600, (sod / 60) % 60, sod % 60)
 }
 
+/// Behaviour every [`Store`] shares, checked against each implementation by its tests.
+#[cfg(test)]
+pub(crate) mod conformance {
+    use super::*;
+    use std::time::Duration;
+
+    /// Window claims: `job` (queued, of a stored sequence) is inserted and run; claims hold
+    /// only while it runs, one worker at a time, until released or expired; its end ends them.
+    pub(crate) fn window_claims(store: &dyn Store, job: JobRecord) {
+        let ms = Duration::from_millis;
+        store.insert_job(&job).unwrap();
+        let id = job.id;
+        // Not running yet: nothing to help with.
+        assert!(!store.claim_window(id, "w-0-25", "w1", ms(60_000)).unwrap());
+        let claim = Claim { worker: "owner".into(), lease: ms(600_000), max_attempts: 3 };
+        assert_eq!(store.claim_next_job(&claim).unwrap().unwrap().id, id);
+        assert!(store.claim_window(id, "w-0-25", "w1", ms(300)).unwrap());
+        assert!(!store.claim_window(id, "w-0-25", "w2", ms(60_000)).unwrap());
+        assert!(store.claim_window(id, "w-20-25", "w2", ms(60_000)).unwrap());
+        // Renewed by its holder; taken over once expired.
+        assert!(store.claim_window(id, "w-0-25", "w1", ms(300)).unwrap());
+        std::thread::sleep(ms(400));
+        assert!(store.claim_window(id, "w-0-25", "w2", ms(60_000)).unwrap());
+        assert!(!store.claim_window(id, "w-0-25", "w1", ms(300)).unwrap());
+        // Released by its holder only, then free for anyone.
+        store.release_window(id, "w-20-25", "w1").unwrap();
+        assert!(!store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
+        store.release_window(id, "w-20-25", "w2").unwrap();
+        assert!(store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
+        store.finish_job(id, "owner", JobOutcome::Cancelled).unwrap();
+        assert!(!store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

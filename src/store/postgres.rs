@@ -805,6 +805,13 @@ impl Store for PgStore {
             .await
         })?;
         let job = job_from_row(&row.ok_or_else(|| lease_lost(id, worker))?)?;
+        // Claims of a job that is not running are refused anyway; removing them keeps the table
+        // small (a failure here is harmless).
+        if let Err(e) = self.inner.run(async {
+            sqlx::query("DELETE FROM window_claims WHERE job_id = $1").bind(id).execute(&self.inner.pool).await
+        }) {
+            tracing::warn!(job = %id, error = %e, "could not remove a finished job's window claims");
+        }
         // The job will not run again: its kept windows and checkpoints are of no more use. If
         // removing them fails, the janitor does it at a later connect.
         if let Err(e) = self.inner.blobs().delete_prefix(&windows_prefix(id)) {

@@ -1124,30 +1124,9 @@ mod tests {
         let dir = temp_dir();
         let store = SqliteStore::open(&dir).unwrap();
         let seq = sequence(&store);
-        let a = job(seq.id);
-        store.insert_job(&a).unwrap();
-        let ms = std::time::Duration::from_millis;
-        // Not running yet: nothing to help with.
-        assert!(!store.claim_window(a.id, "w-0-25", "w1", ms(60_000)).unwrap());
-        store.claim_next_job(&claim()).unwrap();
-        assert!(store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
-        assert!(!store.claim_window(a.id, "w-0-25", "w2", ms(60_000)).unwrap());
-        assert!(store.claim_window(a.id, "w-20-25", "w2", ms(60_000)).unwrap());
-        // Renewed by its holder; taken over once expired.
-        assert!(store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
-        std::thread::sleep(ms(250));
-        assert!(store.claim_window(a.id, "w-0-25", "w2", ms(60_000)).unwrap());
-        assert!(!store.claim_window(a.id, "w-0-25", "w1", ms(200)).unwrap());
-        // Released (by its holder only), then free for anyone.
-        store.release_window(a.id, "w-20-25", "w1").unwrap();
-        assert!(!store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
-        store.release_window(a.id, "w-20-25", "w2").unwrap();
-        assert!(store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
-        // The job's end ends its claims.
-        store.finish_job(a.id, WORKER, JobOutcome::Cancelled).unwrap();
-        assert!(!store.claim_window(a.id, "w-20-25", "w3", ms(60_000)).unwrap());
+        crate::store::conformance::window_claims(&store, job(seq.id));
         let claims: i64 = store.inner.conn().query_row("SELECT COUNT(*) FROM window_claims", [], |r| r.get(0)).unwrap();
-        assert_eq!(claims, 0);
+        assert_eq!(claims, 0, "the job's end ends its claims");
         fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -652,3 +652,10 @@ fn the_store_answers_from_plain_threads_blocking_tasks_and_async_tasks_of_anothe
     // without blocking or panicking.
     runtime.block_on(async move { tokio::spawn(async move { drop(store) }).await }).unwrap();
 }
+
+#[test]
+fn a_window_is_claimed_by_one_worker_until_its_lease_expires_or_it_is_released() {
+    let (_db, _blobs, store) = setup!();
+    let seq = sequence(&store);
+    crate::store::conformance::window_claims(&store, job(seq.id));
+}
