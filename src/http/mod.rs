@@ -336,6 +336,16 @@ impl Service {
         let (store, tmp_dir) = tokio::task::spawn_blocking(move || crate::store::open(&data_dir, &store_config))
             .await?
             .context("opening the store")?;
+        if config.workers == 0 {
+            if config.store.database_url.is_none() {
+                tracing::warn!(
+                    "no workers and the embedded store: queued jobs wait until this service starts with workers \
+                     (only a shared store, MBNT_DATABASE_URL, has `mbnt worker` processes)"
+                );
+            } else {
+                tracing::info!("no workers here: `mbnt worker` processes of the shared store fit the jobs");
+            }
+        }
         let queue = JobQueue::with_settings(store.clone(), config.worker.clone());
         let workers = WorkerPool::start(queue.clone(), fitter, config.workers, config.threads_per_job.max(1))?;
         let (stop, stopped) = watch::channel(false);
