@@ -20,7 +20,7 @@ use uuid::Uuid;
 use crate::fit::windows::{FinishedWindows, fit_log};
 use crate::fit::{FitError, FrameSource, Method, Progress, Sequence, ValidFitParams, fit_sequence};
 use crate::model::FittedModel;
-use crate::store::{CancelOutcome, JobProgress, JobRecord, JobStatus, Store, StoreError, now_ms};
+use crate::store::{CancelOutcome, JobRecord, Store, StoreError};
 
 pub use worker::{Worker, WorkerPool, worker_name};
 
@@ -207,22 +207,7 @@ impl JobQueue {
 
     /// A new queued job record (not yet stored).
     pub fn new_job(sequence_id: Uuid, method: Method, params: ValidFitParams) -> JobRecord {
-        JobRecord {
-            id: Uuid::new_v4(),
-            sequence_id,
-            method,
-            progress: JobProgress { iterations: params.iterations, ..JobProgress::default() },
-            params,
-            status: JobStatus::Queued,
-            error: None,
-            cancel_requested: false,
-            attempts: 0,
-            worker: None,
-            lease_expires_at_ms: None,
-            created_at_ms: now_ms(),
-            started_at_ms: None,
-            finished_at_ms: None,
-        }
+        JobRecord::queued(sequence_id, method, params)
     }
 
     /// Stores a queued job and wakes a worker. Blocking.

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use super::*;
 use crate::fit::{FitParams, LossTerms};
-use crate::store::{JobFilter, SequenceMeta, SqliteStore};
+use crate::store::{JobFilter, JobStatus, SequenceMeta, SqliteStore};
 
 /// Reports `steps` slow iterations of its own (stopping on `Break`), then runs the real fit:
 /// a fit long enough to be cancelled or interrupted.

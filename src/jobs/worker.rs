@@ -104,11 +104,7 @@ impl Worker {
         let lease = self.queue.settings.lease;
         std::thread::scope(|scope| {
             let heartbeat = scope.spawn(|| {
-                while !done.load(Ordering::Relaxed) {
-                    std::thread::park_timeout(lease / 3);
-                    if done.load(Ordering::Relaxed) {
-                        break;
-                    }
+                renew_until(lease, &done, || {
                     match store.renew_lease(job.id, &self.name, lease) {
                         Ok(LeaseStatus::Held { cancel_requested }) => {
                             if cancel_requested {
@@ -117,7 +113,7 @@ impl Worker {
                         }
                         Ok(LeaseStatus::Lost) => {
                             lost.store(true, Ordering::Relaxed);
-                            break;
+                            return false;
                         }
                         // The lease may still hold; the next renewal tells.
                         Err(e) => tracing::warn!(error = %e, "could not renew the job's lease"),
@@ -128,15 +124,13 @@ impl Worker {
                     {
                         tracing::warn!(error = %e, "could not renew a window claim");
                     }
-                }
+                    true
+                });
             });
             let result = self.run(job.clone(), cancel, &lost, &claimed);
             done.store(true, Ordering::Relaxed);
             heartbeat.thread().unpark();
-            match result {
-                Err(StoreError::LeaseLost(why)) => Err(StoreError::LeaseLost(why)),
-                other => other,
-            }
+            result
         })
         .or_else(|e| match e {
             StoreError::LeaseLost(why) => {
@@ -325,16 +319,18 @@ impl Worker {
             let frames = job.params.window_frames;
             let starts =
                 crate::fit::windows::window_starts(sequence.frame_count(), frames, job.params.window_overlap_frames);
+            // One listing per job, not a read of every kept model at every idle poll.
+            let kept = store.window_keys(job.id)?;
             for (w, &start) in starts.iter().enumerate() {
-                if store.read_window_model(job.id, &StoredWindows::key(start, frames))?.is_some() {
+                if kept.contains(&StoredWindows::key(start, frames)) {
                     continue;
                 }
                 let key = StoredWindows::claim_key(start, frames);
                 if !store.claim_window(job.id, &key, &self.name, self.queue.settings.lease)? {
                     continue;
                 }
-                // Kept between the look above and the claim: nothing to do.
-                if store.read_window_model(job.id, &StoredWindows::key(start, frames))?.is_some() {
+                // Kept between the listing and the claim: nothing to do.
+                if store.window_keys(job.id)?.contains(&StoredWindows::key(start, frames)) {
                     store.release_window(job.id, &key, &self.name)?;
                     continue;
                 }
@@ -361,20 +357,16 @@ impl Worker {
         let started = Instant::now();
         std::thread::scope(|scope| {
             let heartbeat = scope.spawn(|| {
-                while !done.load(Ordering::Relaxed) {
-                    std::thread::park_timeout(lease / 3);
-                    if done.load(Ordering::Relaxed) {
-                        break;
+                renew_until(lease, &done, || match store.claim_window(job.id, key, &self.name, lease) {
+                    Ok(held) => {
+                        lost.store(!held, Ordering::Relaxed);
+                        held
                     }
-                    match store.claim_window(job.id, key, &self.name, lease) {
-                        Ok(true) => {}
-                        Ok(false) => {
-                            lost.store(true, Ordering::Relaxed);
-                            break;
-                        }
-                        Err(e) => tracing::warn!(error = %e, "could not renew a window claim"),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "could not renew a window claim");
+                        true
                     }
-                }
+                });
             });
             let resumed = AtomicUsize::new(usize::MAX);
             let claimed = std::sync::Mutex::new(None);
@@ -576,6 +568,17 @@ impl FrameSource for StoredFrames<'_> {
                 self.store.read_frame(self.record.id, k).map_err(|e| FitError::FrameRead(format!("frame {k}: {e}")))
             })
             .collect()
+    }
+}
+
+/// Calls `renew` every third of `lease` (so that two renewals may fail before it ends) until
+/// `done` is set or `renew` says the lease is gone; `done`'s setter unparks the thread.
+fn renew_until(lease: Duration, done: &AtomicBool, mut renew: impl FnMut() -> bool) {
+    while !done.load(Ordering::Relaxed) {
+        std::thread::park_timeout(lease / 3);
+        if done.load(Ordering::Relaxed) || !renew() {
+            break;
+        }
     }
 }
 

@@ -174,6 +174,28 @@ pub struct JobRecord {
     pub finished_at_ms: Option<i64>,
 }
 
+impl JobRecord {
+    /// A new queued job of `method` on sequence `sequence_id` (not yet stored).
+    pub fn queued(sequence_id: Uuid, method: Method, params: ValidFitParams) -> Self {
+        Self {
+            id: Uuid::new_v4(),
+            sequence_id,
+            method,
+            progress: JobProgress { iterations: params.iterations, ..JobProgress::default() },
+            params,
+            status: JobStatus::Queued,
+            error: None,
+            cancel_requested: false,
+            attempts: 0,
+            worker: None,
+            lease_expires_at_ms: None,
+            created_at_ms: now_ms(),
+            started_at_ms: None,
+            finished_at_ms: None,
+        }
+    }
+}
+
 /// How a run ended, as recorded by [`Store::finish_job`].
 #[derive(Debug)]
 pub enum JobOutcome<'a> {
@@ -349,6 +371,8 @@ pub trait Store: Send + Sync + 'static {
     fn claim_window(&self, id: Uuid, key: &str, worker: &str, lease: std::time::Duration) -> Result<bool, StoreError>;
     /// Lets go of a window `worker` claimed (its model is kept, or its fit stopped).
     fn release_window(&self, id: Uuid, key: &str, worker: &str) -> Result<(), StoreError>;
+    /// The keys of the window models and checkpoints kept for this job (without reading them).
+    fn window_keys(&self, job_id: Uuid) -> Result<Vec<String>, StoreError>;
     /// A window model kept by [`Store::put_window_model`] for this job, if any.
     fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError>;
     /// Number of jobs in each status (statuses without jobs are absent).
@@ -472,8 +496,16 @@ pub(crate) mod conformance {
         assert!(!store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
         store.release_window(id, "w-20-25", "w2").unwrap();
         assert!(store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
+        // Kept windows are listed by key without being read.
+        assert!(store.window_keys(id).unwrap().is_empty());
+        store.put_window_model(id, "0-25", b"model").unwrap();
+        store.put_window_model(id, "checkpoint-20-25", b"state").unwrap();
+        let mut keys = store.window_keys(id).unwrap();
+        keys.sort();
+        assert_eq!(keys, ["0-25", "checkpoint-20-25"]);
         store.finish_job(id, "owner", JobOutcome::Cancelled).unwrap();
         assert!(!store.claim_window(id, "w-20-25", "w3", ms(60_000)).unwrap());
+        assert!(store.window_keys(id).unwrap().is_empty(), "a finished job's windows are removed");
     }
 }
 

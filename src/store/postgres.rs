@@ -949,6 +949,17 @@ impl Store for PgStore {
         })
     }
 
+    fn window_keys(&self, job_id: Uuid) -> Result<Vec<String>, StoreError> {
+        let prefix = windows_prefix(job_id);
+        Ok(self
+            .inner
+            .blobs()
+            .list(&prefix)?
+            .into_iter()
+            .filter_map(|k| k.strip_prefix(&prefix).and_then(|k| k.strip_suffix(".mbnt")).map(str::to_string))
+            .collect())
+    }
+
     fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError> {
         check_window_key(key)?;
         self.inner.blobs().get(&format!("{}{key}.mbnt", windows_prefix(job_id)))

@@ -763,6 +763,24 @@ impl Store for SqliteStore {
         Ok(())
     }
 
+    fn window_keys(&self, job_id: Uuid) -> Result<Vec<String>, StoreError> {
+        let dir = self.inner.dir.windows_dir().join(job_id.to_string());
+        let entries = match fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(e.into()),
+        };
+        let mut keys = Vec::new();
+        for entry in entries {
+            let name = entry?.file_name().to_string_lossy().into_owned();
+            // Temporaries of an atomic write in progress start with a dot.
+            if let Some(key) = name.strip_suffix(".mbnt").filter(|_| !name.starts_with('.')) {
+                keys.push(key.to_string());
+            }
+        }
+        Ok(keys)
+    }
+
     fn read_window_model(&self, job_id: Uuid, key: &str) -> Result<Option<Vec<u8>>, StoreError> {
         check_window_key(key)?;
         match fs::read(self.inner.dir.window_model_path(&job_id.to_string(), key)) {
@@ -817,22 +835,7 @@ mod tests {
     }
 
     fn job(sequence_id: Uuid) -> JobRecord {
-        JobRecord {
-            id: Uuid::new_v4(),
-            sequence_id,
-            method: Method::Ntp,
-            params: FitParams::default().check(Method::Ntp).unwrap(),
-            status: JobStatus::Queued,
-            progress: JobProgress::default(),
-            error: None,
-            cancel_requested: false,
-            attempts: 0,
-            created_at_ms: now_ms(),
-            started_at_ms: None,
-            finished_at_ms: None,
-            worker: None,
-            lease_expires_at_ms: None,
-        }
+        JobRecord::queued(sequence_id, Method::Ntp, FitParams::default().check(Method::Ntp).unwrap())
     }
 
     const WORKER: &str = "test:1:0";

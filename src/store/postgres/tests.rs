@@ -108,22 +108,7 @@ fn sequence(store: &PgStore) -> SequenceRecord {
 }
 
 fn job(sequence_id: Uuid) -> JobRecord {
-    JobRecord {
-        id: Uuid::new_v4(),
-        sequence_id,
-        method: Method::Ntp,
-        params: FitParams::default().check(Method::Ntp).unwrap(),
-        status: JobStatus::Queued,
-        progress: JobProgress::default(),
-        error: None,
-        cancel_requested: false,
-        attempts: 0,
-        created_at_ms: now_ms(),
-        started_at_ms: None,
-        finished_at_ms: None,
-        worker: None,
-        lease_expires_at_ms: None,
-    }
+    JobRecord::queued(sequence_id, Method::Ntp, FitParams::default().check(Method::Ntp).unwrap())
 }
 
 const WORKER: &str = "test:1:0";
