@@ -12,6 +12,7 @@
 //! ```
 //!
 //! Under each object, the same errors for its points that a body holds. With
+//! `BODY_DIAG_LOG=LOG_FRAMES,FIRST`, frames FIRST.. of a longer simulated log. With
 //! `BODY_DIAG_PATH=1`, also the object's true path (centre of its frame-0 points, fit
 //! coordinates, every frame) and where the model carries the same points; with `BODY_DIAG_PROBE=N`, what N rounds of point-to-point ICP (30 when N
 //! is not a number) recover between two of its sweeps (its own points only, from standing
@@ -35,7 +36,17 @@ fn main() -> anyhow::Result<()> {
     let probe_rounds: Option<usize> = std::env::var("BODY_DIAG_PROBE").ok().map(|s| s.parse().unwrap_or(30));
     let show_path = std::env::var("BODY_DIAG_PATH").is_ok();
     for seed in seeds {
-        let sim = simulate(&SimParams::log(seed, frames))?;
+        // `BODY_DIAG_LOG=LOG_FRAMES,FIRST`: frames FIRST.. of a LOG_FRAMES-frame log (a window of
+        // a whole log, as `mbnt eval --first-frame FIRST --log-frames LOG_FRAMES` scores it).
+        let sim = match std::env::var("BODY_DIAG_LOG").ok() {
+            Some(spec) => {
+                let (log, first) =
+                    spec.split_once(',').ok_or_else(|| anyhow::anyhow!("BODY_DIAG_LOG=LOG_FRAMES,FIRST"))?;
+                let first: usize = first.parse()?;
+                simulate(&SimParams::log(seed, log.parse()?))?.frames_range(first..first + frames)?
+            }
+            None => simulate(&SimParams::log(seed, frames))?,
+        };
         let sequence = sim.to_fit_sequence();
         let started = std::time::Instant::now();
         let model = fit_sequence(&sequence, Method::Mbnt, &params, &mut |_| std::ops::ControlFlow::Continue(()))?;

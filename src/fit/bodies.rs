@@ -26,7 +26,9 @@
 //!    its observed frames (and most of its points) clearly better than standing still, tested
 //!    from the seed and from the nearest observed frames towards it, its centre travels at least
 //!    [`BodyParams::min_travel_m`], and its shape is a road user's (at most a lane wide across
-//!    its travel, between a wheel's and a truck's height, 0.25-4 m). Otherwise its clusters stay with the
+//!    its travel, between a wheel's and a truck's height, 0.25-4 m), and, where the sensor's rays
+//!    are known, the sensor no longer sees it in the place its motion says it left (a parked car
+//!    or a wall the registrations slid along is still there). Otherwise its clusters stay with the
 //!    still world, free to join a body found from another seed. A kept body's member points that
 //!    the still world explains and its motion does not (a post it drove past) leave it.
 //!
@@ -542,7 +544,12 @@ fn track_body(
     // with the sensor) is neither.
     let size: [f32; 3] = std::array::from_fn(|i| extent_max_m[i] - extent_min_m[i]);
     let plausible = size[1] <= MAX_WIDTH_M && (MIN_HEIGHT_M..=MAX_HEIGHT_M).contains(&size[2]);
+    // Evidence from outside the body's own registrations: where the body is said to have left
+    // its seed's place for good, the sensor must no longer find the seed's points there. A
+    // parked car or a wall the registrations slid along is still seen in its place.
+    let left_its_place = rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
     let moving = plausible
+        && left_its_place
         && seen >= need_seen
         && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
         && 2 * clear >= tested
@@ -621,6 +628,61 @@ fn moving_by_rays(src: &[Point], motion: &Rigid, rays: &SweepRays) -> bool {
 /// How many of `src` carried by `motion` lie where the `rays` passed through empty space.
 fn passed_through(src: &[Point], motion: &Rigid, rays: &SweepRays) -> usize {
     src.iter().filter(|p| rays.sight(&motion.apply(p), RAY_MARGIN_M) == Sight::Passed).count()
+}
+
+/// A body counts as gone from its seed's place at the frames where its centre is farther than
+/// the seed's own length (its longest horizontal extent) plus this (m) from where it was...
+const LEFT_PLACE_MARGIN_M: f64 = 1.0;
+/// ...and a seed point at the frames where it lies farther than this (m) from the body's model
+/// at the body's pose there.
+const VACATED_M: f32 = 0.5;
+/// [`place_still_occupied`] needs at least this many seed points seen in their place before it
+/// speaks: a few rays ending near them by chance are no evidence.
+const LEFT_PLACE_MIN_SEEN: usize = 20;
+
+/// Whether the sensor still finds the seed `src` (a body's points at frame `k`, fit
+/// coordinates) in the place the body's motion says it left: more of the seed's points left
+/// standing are seen there (a ray ends on them) than passed through (a ray goes on past them).
+/// A moving road user leaves empty space where it was, or space hidden behind itself; a static
+/// structure that the registrations slid along (a parked car passed alongside, whose visible
+/// part moves with the sensor; a building's corner) is still there.
+///
+/// Two tallies, either of which can speak: over the frames where the body's centre (`centre`,
+/// moved by `poses`: seed frame -> each frame) is well away from the seed's place (see
+/// [`LEFT_PLACE_MARGIN_M`]), every seed point; over all frames, the seed points the body's
+/// model (`model_tree`, seed-frame coordinates) no longer covers there (see [`VACATED_M`]): a
+/// slide shorter than the body's own length leaves only its ends. On the simulator's bodies
+/// (docs/benchmarks.md section 28) no moving body had more than a third as many seed points
+/// seen as passed through in either tally.
+fn place_still_occupied(
+    src: &[Point],
+    k: usize,
+    poses: &[Rigid],
+    centre: [f64; 3],
+    model_tree: &KdTree,
+    rays: &[SweepRays],
+) -> bool {
+    let away_m = horizontal_length_m(src) + LEFT_PLACE_MARGIN_M;
+    // (seen, passed) over the frames the body is away, and over the points it vacated.
+    let (mut away, mut vacated) = ((0usize, 0usize), (0usize, 0usize));
+    for j in (0..poses.len().min(rays.len())).filter(|&j| j != k) {
+        let c = poses[j].apply_f64(centre);
+        let is_away = (c[0] - centre[0]).hypot(c[1] - centre[1]) >= away_m;
+        let to_body = poses[j].inverse();
+        for p in src {
+            let covered = model_tree.nearest(&to_body.apply(p)).is_some_and(|h| h.dist2 <= VACATED_M * VACATED_M);
+            if !is_away && covered {
+                continue;
+            }
+            let tallies = [is_away.then_some(&mut away), (!covered).then_some(&mut vacated)];
+            match rays[j].sight(p, RAY_MARGIN_M) {
+                Sight::Seen => tallies.into_iter().flatten().for_each(|t| t.0 += 1),
+                Sight::Passed => tallies.into_iter().flatten().for_each(|t| t.1 += 1),
+                Sight::Hidden | Sight::Unknown => {}
+            }
+        }
+    }
+    [away, vacated].iter().any(|&(seen, passed)| seen >= LEFT_PLACE_MIN_SEEN && seen > passed)
 }
 
 /// A member point is still world when, left where it is, it lies this close (m) to every
@@ -1736,6 +1798,69 @@ mod tests {
         let made_up = Rigid { translation: [0.5, 0.0, 0.0], ..Rigid::identity() };
         assert!(!moving_by_rays(&still_src, &made_up, &rays));
         assert_eq!(horizontal_length_m(&[]), 0.0);
+    }
+
+    #[test]
+    fn a_car_that_drove_off_leaves_its_place_empty_a_parked_car_made_to_slide_is_still_seen_there() {
+        use crate::sim::{Behaviour, ObjectKind, SimParams, simulate};
+        // Seed 100's oncoming car (about 1 m a frame) and its largest parked car, frames 0-11.
+        let frames = 12;
+        let sim = simulate(&SimParams { seed: 100, frames, ..SimParams::default() }).unwrap();
+        let to_first = crate::fit::poses_relative_to_first(&sim.ego_poses).unwrap();
+        let largest = |kind: ObjectKind, behaviour: Option<Behaviour>| {
+            sim.objects
+                .iter()
+                .filter(|o| o.kind == kind && behaviour.is_none_or(|b| o.behaviour == b))
+                .max_by_key(|o| sim.truth[0].iter().filter(|t| t.object_id == o.id && !t.is_ground).count())
+                .unwrap()
+                .id
+        };
+        let car = largest(ObjectKind::MovingCar, Some(Behaviour::Oncoming));
+        let parked = largest(ObjectKind::ParkedCar, None);
+        let pre = crate::geometry::ground::PreprocessParams::default();
+        let (kept, _) = crate::geometry::ground::preprocess(&sim.frames[0], &pre).unwrap();
+        let own = |id: u32| -> Vec<usize> {
+            kept.iter().map(|&i| i as usize).filter(|&i| sim.truth[0][i].object_id == id).collect()
+        };
+        let (car_idx, parked_idx) = (own(car), own(parked));
+        let points =
+            |idx: &[usize]| -> Vec<Point> { idx.iter().map(|&i| to_first[0].apply(&sim.frames[0][i])).collect() };
+        let (src, still_src) = (points(&car_idx), points(&parked_idx));
+        assert!(src.len() > 100 && still_src.len() > 50, "{} / {} points", src.len(), still_src.len());
+        let rays: Vec<SweepRays> = (0..frames).map(|j| SweepRays::new(&sim.frames[j], &to_first[j])).collect();
+        // The car's true motion from frame 0 to every frame.
+        let poses: Vec<Rigid> = (0..frames)
+            .map(|j| {
+                let at = sim.positions_at(0, j).unwrap();
+                let to: Vec<Point> = car_idx.iter().map(|&i| to_first[j].apply(&at[i])).collect();
+                crate::geometry::rigid::fit_rigid(&src, &to).unwrap()
+            })
+            .collect();
+        let centre = centroid(&src);
+        let end = poses[frames - 1].apply_f64(centre);
+        assert!(
+            (end[0] - centre[0]).hypot(end[1] - centre[1]) > horizontal_length_m(&src) + LEFT_PLACE_MARGIN_M + 3.0,
+            "the car must be well away from its place in the last frames"
+        );
+        assert!(!place_still_occupied(&src, 0, &poses, centre, &KdTree::new(&src), &rays));
+        // The parked car made to slide 0.8 m a frame along the road is still seen in its place.
+        let slide: Vec<Rigid> =
+            (0..frames).map(|j| Rigid { translation: [0.8 * j as f64, 0.0, 0.0], ..Rigid::identity() }).collect();
+        let parked_centre = centroid(&still_src);
+        let parked_model = KdTree::new(&still_src);
+        assert!(place_still_occupied(&still_src, 0, &slide, parked_centre, &parked_model, &rays));
+        // Made to creep along the road by less than its own length, its ends are still seen where
+        // the creep says they left.
+        let creep: Vec<Rigid> =
+            (0..frames).map(|j| Rigid { translation: [0.15 * j as f64, 0.0, 0.0], ..Rigid::identity() }).collect();
+        assert!(
+            0.15 * ((frames - 1) as f64) < horizontal_length_m(&still_src) + LEFT_PLACE_MARGIN_M,
+            "the creep must never take it away from its place: only the vacated tally speaks"
+        );
+        assert!(place_still_occupied(&still_src, 0, &creep, parked_centre, &parked_model, &rays));
+        // Left in its place it never leaves it: no evidence either way.
+        let stay = vec![Rigid::identity(); frames];
+        assert!(!place_still_occupied(&still_src, 0, &stay, parked_centre, &parked_model, &rays));
     }
 
     #[test]
