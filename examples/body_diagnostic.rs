@@ -82,7 +82,7 @@ fn main() -> anyhow::Result<()> {
         } else {
             Vec::new()
         };
-        let owners = model.object_ids(&sim.frames[..1])[0].clone();
+        let owners = model.object_ids(&sim.frames[..1])?[0].clone();
         let error = |i: usize, n: usize| -> f64 {
             let (p, q) = (predicted[i * checkpoints.len() + n], truth[n][i]);
             (0..3).map(|c| f64::from(p[c] - q[c]).powi(2)).sum::<f64>().sqrt()
@@ -220,7 +220,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         // What each body holds over all frames, by the kind of the simulator's objects.
-        let all_owners = model.object_ids(&sim.frames);
+        let all_owners = model.object_ids(&sim.frames)?;
         for body in model.bodies() {
             let mut held: BTreeMap<String, usize> = BTreeMap::new();
             for (k, owners) in all_owners.iter().enumerate() {

@@ -61,7 +61,7 @@ fn main() -> anyhow::Result<()> {
     let points: Vec<Point> = set.indices.iter().map(|&i| pair.pc1[i]).collect();
     let moved = model.positions(&points, 0.0, &[PAIR_DT_S])?;
     let flow: Vec<Point> = points.iter().zip(&moved).map(|(p, q)| std::array::from_fn(|c| q[c] - p[c])).collect();
-    let owners = model.object_ids(std::slice::from_ref(&points))[0].clone();
+    let owners = model.object_ids(std::slice::from_ref(&points))?[0].clone();
     let truth: Vec<Point> = set.indices.iter().map(|&i| pair.gt_flow[i]).collect();
     let error = |k: usize| norm(std::array::from_fn(|c| flow[k][c] - truth[k][c]));
 

@@ -25,9 +25,9 @@ fn main() -> anyhow::Result<()> {
     let sim = simulate(&SimParams::log(seed, frames))?;
     let ts = &sim.timestamps_s;
     let to = (from + span).min(frames - 1);
-    let starts: Vec<usize> = model.windows().iter().map(|(s, _)| *s).collect();
+    let starts = model.window_starts();
     println!("windows from {starts:?}; bodies (objects) {}", model.bodies().len());
-    for (start, window) in model.windows() {
+    for (start, window) in model.windows()? {
         let seen: Vec<String> = window
             .bodies()
             .iter()
@@ -44,14 +44,14 @@ fn main() -> anyhow::Result<()> {
         println!("  window from {start}: bodies (id: frames seen) {}", seen.join(" "));
     }
     println!("  object ids per window: {:?}", model.window_object_ids());
-    for (w, shares) in model.window_link_shares().iter().enumerate() {
+    for (w, shares) in model.window_link_shares()?.iter().enumerate() {
         let listed: Vec<String> =
             shares.iter().filter(|s| s.2 > 0.02).map(|(a, b, s)| format!("{a}-{b}:{:.2}", s)).collect();
         println!("  windows {w}-{}: shared members {}", w + 1, listed.join(" "));
     }
     let frame = &sim.frames[from];
     let truth = &sim.truth[from];
-    let ids = &model.object_ids(&sim.frames)[from];
+    let ids = &model.object_ids(&sim.frames)?[from];
     // Moving objects with at least 30 points in frame `from` (not ground).
     let mut objects: Vec<(u32, Vec<usize>)> = Vec::new();
     for (i, t) in truth.iter().enumerate() {

@@ -234,6 +234,25 @@ async fn a_sequence_round_trips_through_fit_query_and_both_label_formats() {
         for column in ["flow_tx_m", "flow_ty_m", "flow_tz_m", "is_valid", "object_id"] {
             assert!(text.contains(column), "{column} missing from the feather schema");
         }
+        // Written a frame at a time: entry k is frame k's Feather file of the npz labels' flow
+        // and object ids of that frame.
+        #[cfg(feature = "av2")]
+        {
+            use mbnt::io::npy::NpyData;
+            let arrays = mbnt::io::npz::read_npz(&npz).unwrap();
+            for k in 0..2 {
+                let (NpyData::F32(flat), NpyData::I32(ids)) =
+                    (&arrays[&format!("flow_{k:03}")].data, &arrays[&format!("object_{k:03}")].data)
+                else {
+                    panic!("frame {k}: float32 flows and int32 object ids expected");
+                };
+                let flow: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+                let want = mbnt::io::labels::write_flow_feather(Vec::new(), &flow, None, Some(ids)).unwrap();
+                let mut entry = Vec::new();
+                archive.by_name(&format!("{k:06}.feather")).unwrap().read_to_end(&mut entry).unwrap();
+                assert!(entry == want, "frame {k}'s feather entry differs from the npz labels");
+            }
+        }
     } else {
         assert_eq!(response.status(), 501);
     }

@@ -220,7 +220,7 @@ fn run_mode(
     let (long_term, long_term_dynamic, long_term_network, long_term_network_dynamic) =
         if let (true, Some(sim)) = (full, sim) {
             let (all, dynamic) = accuracy(sim, sequence, &model, &params)?;
-            let (net_all, net_dynamic) = accuracy(sim, sequence, &model.without_tracks(), &params)?;
+            let (net_all, net_dynamic) = accuracy(sim, sequence, &model.without_tracks()?, &params)?;
             (Some(all), Some(dynamic), Some(net_all), Some(net_dynamic))
         } else {
             (None, None, None, None)

@@ -684,7 +684,7 @@ fn score_model(
     model: &crate::model::FittedModel,
 ) -> anyhow::Result<(Prediction, Option<Prediction>)> {
     let predict = |model: &crate::model::FittedModel| -> anyhow::Result<Prediction> {
-        let flows = model.scene_flow(&sequence.frames);
+        let flows = model.scene_flow(&sequence.frames)?;
         let ts = &sim.timestamps_s;
         let end_positions = model.positions(&sim.frames[0], ts[0], &[ts[ts.len() - 1]])?;
         let spans = sim
@@ -710,7 +710,7 @@ fn score_model(
             model.bodies().len(),
             model.report().rigid_tracks_seconds
         );
-        Some(predict(&model.without_tracks())?)
+        Some(predict(&model.without_tracks()?)?)
     } else {
         None
     };

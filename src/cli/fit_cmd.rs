@@ -198,10 +198,10 @@ pub fn run(args: FitArgs) -> anyhow::Result<()> {
             npz.add_f32(&format!("traj_{k:03}"), &[points.len(), times.len(), 3], positions.as_flattened())?;
         }
         if k + 1 < axis.frames() {
-            let flow = model.frame_scene_flow(k, &points);
+            let flow = model.frame_scene_flow(k, &points)?;
             npz.add_f32(&format!("flow_{k:03}"), &[flow.len(), 3], flow.as_flattened())?;
         }
-        let ids = model.frame_object_ids(k, &points);
+        let ids = model.frame_object_ids(k, &points)?;
         npz.add_i32(&format!("object_{k:03}"), &[ids.len()], &ids)?;
         bar.inc(1);
     }

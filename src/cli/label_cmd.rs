@@ -151,9 +151,9 @@ fn label(log: Log, fit: &FitOptions, out: &Path, format: LabelFormat) -> anyhow:
     let bar = progress::bar(labelled, "writing labels");
     for k in 0..labelled {
         let points = log.frames.frame(k)?;
-        let flow = model.frame_scene_flow(k, &points);
+        let flow = model.frame_scene_flow(k, &points)?;
         let path = out.join(format!("{}.{}", log.names[k], format.extension()));
-        write_label_file(&path, format, &flow, &model.frame_object_ids(k, &points))?;
+        write_label_file(&path, format, &flow, &model.frame_object_ids(k, &points)?)?;
         bar.inc(1);
     }
     bar.finish_and_clear();

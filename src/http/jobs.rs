@@ -17,10 +17,11 @@ use uuid::Uuid;
 use super::error::parse_json_body;
 use super::sequences::is_json;
 use super::strict::{Index, fit_params_object, present};
-use super::{ApiError, AppState, list_limit, parse_id, stored_read_error};
+use super::{ApiError, AppState, list_limit, parse_id, result_unreadable, stored_read_error};
 use crate::fit::{FitParams, Method};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
+use crate::io::labels::LabelsWriter;
 use crate::jobs::JobQueue;
 use crate::model::{LossRecord, QueryError};
 use crate::store::{CancelOutcome, JobFilter, JobProgress, JobRecord, JobStatus, rfc3339};
@@ -404,8 +405,10 @@ pub async fn query(
         }
     };
     let times = body.times;
+    let store = state.store();
     let json = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
         let flat = model.positions(&points, t_obs, &times).map_err(|e| match e {
+            QueryError::CorruptWindow { .. } => unreadable_window(&*store, job.id, &e),
             QueryError::NonFinitePoint { .. } => ApiError::invalid("points", e.to_string()),
             QueryError::TimeOutOfRange { time, .. } if time == t_obs && !times.contains(&time) => {
                 ApiError::invalid("t", e.to_string())
@@ -417,6 +420,13 @@ pub async fn query(
     })
     .await??;
     Ok(([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], json).into_response())
+}
+
+/// A window of the succeeded job `job`'s stitched model that cannot be read (found when a query
+/// first decodes it, `e`): the stored result is unreadable, the job is failed
+/// ([`result_unreadable`]). Blocking.
+fn unreadable_window(store: &dyn crate::store::Store, job: Uuid, e: &QueryError) -> ApiError {
+    result_unreadable(store, job, format!("the model file cannot be read: {e}"))
 }
 
 /// The 409 for a job that has not succeeded: its status, its error when it failed (e.g. a
@@ -618,6 +628,12 @@ pub async fn labels(
         let read_frame = |k: usize| {
             store.read_frame(record.id, k).map_err(|e| stored_read_error(&*store, job.id, "the sequence's frames", e))
         };
+        // The stored frames are finite and their times in range: only a damaged window of a
+        // stitched model fails a label query.
+        let query_error = |e: QueryError| match e {
+            QueryError::CorruptWindow { .. } => unreadable_window(&*store, job.id, &e),
+            _ => ApiError::Internal(anyhow::anyhow!("labelling the stored frames: {e}")),
+        };
         let path = tmp_dir.join(format!("{}.labels", Uuid::new_v4().simple()));
         let file = std::fs::OpenOptions::new()
             .read(true)
@@ -630,23 +646,26 @@ pub async fn labels(
         let w = std::io::BufWriter::new(file);
         let write_error = |e: crate::io::WriteError| ApiError::Internal(anyhow::anyhow!("writing labels: {e}"));
         let frames = record.frames();
-        let written = if as_npz {
-            // One frame at a time: a long log's labels never hold more than a frame.
-            let mut labels = crate::io::labels::LabelsNpzWriter::new(w);
+        // One frame at a time, in either format: a long log's labels never hold more than a
+        // frame (its points, flow and object ids).
+        let write_frames = |labels: &mut dyn LabelsWriter| -> Result<(), ApiError> {
             for k in 0..frames {
                 let points = read_frame(k)?;
-                let flow = (k + 1 < frames).then(|| model.frame_scene_flow(k, &points));
-                labels.frame(flow.as_deref(), &model.frame_object_ids(k, &points)).map_err(write_error)?;
+                let flow =
+                    (k + 1 < frames).then(|| model.frame_scene_flow(k, &points)).transpose().map_err(query_error)?;
+                let object_ids = model.frame_object_ids(k, &points).map_err(query_error)?;
+                labels.frame(flow.as_deref(), &object_ids).map_err(write_error)?;
             }
+            Ok(())
+        };
+        let written = if as_npz {
+            let mut labels = crate::io::labels::LabelsNpzWriter::new(w);
+            write_frames(&mut labels)?;
             let axis = model.time_axis();
             let timestamps: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
             labels.finish(&timestamps)
         } else {
-            let frames = (0..frames).map(read_frame).collect::<Result<Vec<_>, _>>()?;
-            let flows = model.scene_flow(&frames);
-            let object_ids = model.object_ids(&frames);
-            drop(frames);
-            write_av2(w, &flows, &object_ids)
+            write_av2(w, write_frames)?
         };
         let mut file = written
             .map_err(write_error)?
@@ -683,20 +702,22 @@ pub async fn labels(
     Ok((headers, Body::from_stream(stream)).into_response())
 }
 
+/// The labels in the Argoverse 2 layout: `write_frames` writes every frame into the archive.
 #[cfg(feature = "av2")]
 fn write_av2<W: std::io::Write + std::io::Seek>(
     w: W,
-    flows: &[Vec<Point>],
-    object_ids: &[Vec<i32>],
-) -> Result<W, crate::io::WriteError> {
-    crate::io::labels::write_labels_av2_zip(w, flows, None, Some(object_ids))
+    write_frames: impl FnOnce(&mut dyn LabelsWriter) -> Result<(), ApiError>,
+) -> Result<Result<W, crate::io::WriteError>, ApiError> {
+    let mut labels = crate::io::labels::LabelsAv2Writer::new(w);
+    write_frames(&mut labels)?;
+    Ok(labels.finish())
 }
 
+/// A build without the `av2` feature refuses the format before the labels are written.
 #[cfg(not(feature = "av2"))]
 fn write_av2<W: std::io::Write + std::io::Seek>(
     _: W,
-    _: &[Vec<Point>],
-    _: &[Vec<i32>],
-) -> Result<W, crate::io::WriteError> {
-    Err(crate::io::WriteError::Io(std::io::Error::other("built without the av2 feature")))
+    _: impl FnOnce(&mut dyn LabelsWriter) -> Result<(), ApiError>,
+) -> Result<Result<W, crate::io::WriteError>, ApiError> {
+    Err(ApiError::NotImplemented("this build has no av2 export (cargo feature `av2`)".into()))
 }

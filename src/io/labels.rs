@@ -8,6 +8,15 @@ use super::WriteError;
 use super::npz::NpzWriter;
 use crate::geometry::Point;
 
+/// A writer of a log's labels one frame at a time, so that a long log's labels never hold more
+/// than a frame ([`LabelsNpzWriter`], and [`LabelsAv2Writer`] with the `av2` feature): call
+/// [`LabelsWriter::frame`] for k = 0, 1, ..., then the writer's own `finish`.
+pub trait LabelsWriter {
+    /// Writes the next frame's labels: its flow to the next frame (`None` for the last frame,
+    /// which has none) and the moving body of each of its points (-1 for none).
+    fn frame(&mut self, flow: Option<&[Point]>, object_ids: &[i32]) -> Result<(), WriteError>;
+}
+
 /// Writes labels as an `.npz`, one frame at a time (so that a long log's labels never hold more
 /// than a frame): arrays `flow_000`, `flow_001`, ... (float32, shape (N_k, 3), metres, frame k's
 /// sensor coordinates, point order of frame k; none for the last frame, which has no next),
@@ -26,9 +35,15 @@ impl<W: Write + Seek> LabelsNpzWriter<W> {
         Self { npz: NpzWriter::new(w), frames: 0 }
     }
 
-    /// Writes the next frame's labels: its flow to the next frame (`None` for the last frame,
-    /// which has none) and the moving body of each of its points.
-    pub fn frame(&mut self, flow: Option<&[Point]>, object_ids: &[i32]) -> Result<(), WriteError> {
+    /// Writes the timestamps (s, one per frame) and closes the archive.
+    pub fn finish(mut self, timestamps_s: &[f64]) -> Result<W, WriteError> {
+        self.npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
+        self.npz.finish()
+    }
+}
+
+impl<W: Write + Seek> LabelsWriter for LabelsNpzWriter<W> {
+    fn frame(&mut self, flow: Option<&[Point]>, object_ids: &[i32]) -> Result<(), WriteError> {
         let k = self.frames;
         if let Some(flow) = flow {
             if flow.len() != object_ids.len() {
@@ -44,11 +59,59 @@ impl<W: Write + Seek> LabelsNpzWriter<W> {
         self.frames += 1;
         Ok(())
     }
+}
 
-    /// Writes the timestamps (s, one per frame) and closes the archive.
-    pub fn finish(mut self, timestamps_s: &[f64]) -> Result<W, WriteError> {
-        self.npz.add_f64("timestamps", &[timestamps_s.len()], timestamps_s)?;
-        self.npz.finish()
+/// Writes labels as [`write_labels_av2_zip`] does, one frame at a time (so that a long log's
+/// labels never hold more than a frame): a Feather entry per frame with a flow, every point
+/// valid. Call [`LabelsWriter::frame`] for k = 0, 1, ... (the last frame's object ids, which
+/// have no flow, are not written: the layout has flows only), then [`LabelsAv2Writer::finish`].
+#[cfg(feature = "av2")]
+pub struct LabelsAv2Writer<W: Write + Seek> {
+    zip: zip::ZipWriter<W>,
+    /// Frames written so far (the next entry's index).
+    frames: usize,
+    /// One entry's Feather bytes, reused from frame to frame.
+    buf: Vec<u8>,
+}
+
+#[cfg(feature = "av2")]
+impl<W: Write + Seek> LabelsAv2Writer<W> {
+    /// A writer of labels into `w`.
+    pub fn new(w: W) -> Self {
+        Self { zip: zip::ZipWriter::new(w), frames: 0, buf: Vec::new() }
+    }
+
+    /// Writes the next frame's entry (see [`write_flow_feather`] for `valid` and `object_ids`).
+    fn entry(&mut self, flow: &[Point], valid: Option<&[bool]>, object_ids: Option<&[i32]>) -> Result<(), WriteError> {
+        use zip::write::SimpleFileOptions;
+
+        self.buf.clear();
+        write_flow_feather(&mut self.buf, flow, valid, object_ids)?;
+        let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+        // zip64 records only when an entry could exceed the classic u32 sizes.
+        let large = self.buf.len() as u64 >= u32::MAX as u64 - 4096;
+        self.zip.start_file(format!("{:06}.feather", self.frames), options.large_file(large))?;
+        self.zip.write_all(&self.buf)?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Closes the archive.
+    pub fn finish(self) -> Result<W, WriteError> {
+        Ok(self.zip.finish()?)
+    }
+}
+
+#[cfg(feature = "av2")]
+impl<W: Write + Seek> LabelsWriter for LabelsAv2Writer<W> {
+    fn frame(&mut self, flow: Option<&[Point]>, object_ids: &[i32]) -> Result<(), WriteError> {
+        match flow {
+            Some(flow) => self.entry(flow, None, Some(object_ids)).map_err(|e| match e {
+                WriteError::Inconsistent(what) => WriteError::Inconsistent(format!("frame {}: {what}", self.frames)),
+                e => e,
+            }),
+            None => Ok(()),
+        }
     }
 }
 
@@ -68,8 +131,6 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
     valid: Option<&[Vec<bool>]>,
     object_ids: Option<&[Vec<i32>]>,
 ) -> Result<W, WriteError> {
-    use zip::write::SimpleFileOptions;
-
     if let Some(ids) = object_ids {
         // One id array per frame: the last frame (no flow) may have one too.
         if ids.len() < flows.len() {
@@ -103,17 +164,11 @@ pub fn write_labels_av2_zip<W: Write + Seek>(
             )));
         }
     }
-    let mut zip = zip::ZipWriter::new(w);
-    let options = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
-    let mut buf = Vec::new();
+    let mut labels = LabelsAv2Writer::new(w);
     for (k, flow) in flows.iter().enumerate() {
-        buf.clear();
-        write_flow_feather(&mut buf, flow, valid.map(|v| v[k].as_slice()), object_ids.map(|ids| ids[k].as_slice()))?;
-        // zip64 records only when an entry could exceed the classic u32 sizes.
-        zip.start_file(format!("{k:06}.feather"), options.large_file(buf.len() as u64 >= u32::MAX as u64 - 4096))?;
-        zip.write_all(&buf)?;
+        labels.entry(flow, valid.map(|v| v[k].as_slice()), object_ids.map(|ids| ids[k].as_slice()))?;
     }
-    Ok(zip.finish()?)
+    labels.finish()
 }
 
 /// Writes the labels of one frame as a Feather v2 file (uncompressed Arrow IPC): the columns of

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use proptest::prelude::*;
 
+use super::labels::LabelsWriter;
 use super::npy::{self, NpyArray, NpyData};
 use super::npz::NpzWriter;
 use super::*;
@@ -949,6 +950,31 @@ mod av2 {
             let o = batch.column(4).as_any().downcast_ref::<Int32Array>().unwrap();
             assert_eq!(o.values().to_vec(), ids[k]);
         }
+    }
+
+    #[test]
+    fn av2_labels_written_a_frame_at_a_time_are_the_all_at_once_zip_entry_by_entry() {
+        let flows = vec![sample_points(), vec![], vec![[0.5, -0.5, 0.25], [1.0, 2.0, 3.0]]];
+        let ids = vec![vec![-1, 4, 4, -1, 0], vec![], vec![7, -1], vec![1]];
+        let all = labels::write_labels_av2_zip(Cursor::new(Vec::new()), &flows, None, Some(&ids)).unwrap().into_inner();
+        let mut w = labels::LabelsAv2Writer::new(Cursor::new(Vec::new()));
+        for (k, frame_ids) in ids.iter().enumerate() {
+            w.frame(flows.get(k).map(Vec::as_slice), frame_ids).unwrap();
+        }
+        let streamed = unzip(&w.finish().unwrap().into_inner());
+        assert_eq!(streamed, unzip(&all));
+        // One entry per frame with a flow (the last frame's ids have no flow and no entry), each
+        // frame k's own Feather file.
+        assert_eq!(streamed.len(), 3);
+        for (k, (name, data)) in streamed.iter().enumerate() {
+            assert_eq!(name, &format!("{k:06}.feather"));
+            assert_eq!(data, &labels::write_flow_feather(Vec::new(), &flows[k], None, Some(&ids[k])).unwrap());
+        }
+        // Object ids that do not match the frame's flow are refused, naming the frame.
+        let mut w = labels::LabelsAv2Writer::new(Cursor::new(Vec::new()));
+        w.frame(Some(&sample_points()), &[-1; 5]).unwrap();
+        let err = w.frame(Some(&sample_points()), &[-1]).unwrap_err();
+        assert_eq!(err.to_string(), "inconsistent input: frame 1: 1 object ids for 5 points");
     }
 
     #[test]

@@ -447,7 +447,7 @@ fn a_restarted_job_keeps_its_finished_windows() {
     assert_eq!(second.status, JobStatus::Succeeded, "{:?}", second.error);
     assert_eq!(*fitter.fitted.lock().unwrap(), vec![vec![0, 1, 2], vec![2]]);
     let model = FittedModel::from_bytes(&store.read_model(job.id).unwrap()).unwrap();
-    assert_eq!(model.windows().iter().map(|(s, _)| *s).collect::<Vec<_>>(), vec![0, 3, 6]);
+    assert_eq!(model.window_starts(), vec![0, 3, 6]);
     // A finished job keeps no windows.
     assert!(store.read_window_model(job.id, "0-6").unwrap().is_none());
 }
@@ -471,7 +471,7 @@ fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
     assert_eq!((window.window, window.windows), (4, 5), "100 frames: 5 windows of 25");
     let model = FittedModel::from_bytes(&f.queue.store().read_model(job.id).unwrap()).unwrap();
     assert_eq!(model.time_axis().frames(), 100);
-    assert_eq!(model.windows().len(), 5);
+    assert_eq!(model.window_starts().len(), 5);
     let times = &sim.timestamps_s;
     for (k, frame) in sim.frames.iter().enumerate() {
         let some: Vec<[f32; 3]> = frame.iter().step_by(200).copied().collect();
@@ -479,8 +479,8 @@ fn a_hundred_frame_log_is_one_job_whose_every_query_answers() {
         assert_eq!(answers.len(), some.len() * 100);
         assert!(answers.iter().flatten().all(|c| c.is_finite()), "frame {k}");
     }
-    let flows = model.scene_flow(&sim.frames);
-    let ids = model.object_ids(&sim.frames);
+    let flows = model.scene_flow(&sim.frames).unwrap();
+    let ids = model.object_ids(&sim.frames).unwrap();
     assert_eq!((flows.len(), ids.len()), (99, 100));
     assert!((0..100).all(|k| ids[k].len() == sim.frames[k].len()));
     assert!(flows.iter().flatten().flatten().all(|c| c.is_finite()));

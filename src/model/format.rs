@@ -5,13 +5,17 @@
 //! header names each window's first frame and object ids, and each window's own model file
 //! (version 1) follows behind a length prefix in place of a network. A model of one fit is
 //! still written as version 1, so that a server of before the windows reads it; both versions
-//! load.
+//! load. A version 2 file's windows are decoded when a query first needs them (`windows`); its
+//! header also names each window's frames, so that loading reads no window (files written
+//! before that are read by each window's own header).
+
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
 use super::networks::Motion;
 use super::params::Method;
-use super::windows::{Window, WindowHeader, check_windows};
+use super::windows::{Window, WindowBytes, WindowHeader, check_windows};
 use super::{FitReport, FittedModel, MovingBody, NonFiniteModel, RigidTrack, TimeAxis};
 use crate::geometry::Point;
 use crate::geometry::rigid::Rigid;
@@ -36,8 +40,8 @@ impl FittedModel {
             }
             Motion::Windows(windows) => (
                 WINDOWS_KIND,
-                windows.iter().map(|w| w.model.encode()).collect(),
-                windows.iter().map(|w| WindowHeader { start: w.start, object_ids: w.object_ids.clone() }).collect(),
+                windows.iter().map(Window::encode).collect(),
+                windows.iter().map(Window::header).collect(),
             ),
         };
         let header = Header {
@@ -66,7 +70,34 @@ impl FittedModel {
 
     /// Reads a model written by [`FittedModel::to_bytes`]; a model holding a non-finite
     /// number (possible in the networks' binary weights) is refused as corrupt.
+    ///
+    /// A stitched model (version 2) keeps a copy of the file and decodes each window when a
+    /// query first needs it ([`FittedModel::from_vec`] keeps the file without copying it).
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        if bytes.starts_with(WINDOWS_MAGIC) {
+            return Self::from_vec(bytes.to_vec());
+        }
+        Self::read(bytes, None)
+    }
+
+    /// [`FittedModel::from_bytes`] of a file read into `bytes`, which a stitched model keeps
+    /// for its windows.
+    ///
+    /// Loading a stitched model reads its header and checks the file's structure (each
+    /// window's length prefix and version, the windows' frames covering the log in order)
+    /// without decoding a window: a window whose model is damaged is refused when a query first
+    /// needs it, with [`crate::model::QueryError::CorruptWindow`].
+    pub fn from_vec(bytes: Vec<u8>) -> Result<Self, String> {
+        if bytes.starts_with(WINDOWS_MAGIC) {
+            let file = Arc::new(bytes);
+            return Self::read(&file, Some(&file));
+        }
+        Self::read(&bytes, None)
+    }
+
+    /// [`FittedModel::from_bytes`] of `bytes`; `shared` is the same bytes, kept by the windows of
+    /// a stitched model (required for version 2).
+    fn read(bytes: &[u8], shared: Option<&Arc<Vec<u8>>>) -> Result<Self, String> {
         let (mut rest, stitched) = match (bytes.strip_prefix(MODEL_MAGIC), bytes.strip_prefix(WINDOWS_MAGIC)) {
             (Some(rest), _) => (rest, false),
             (_, Some(rest)) => (rest, true),
@@ -94,15 +125,23 @@ impl FittedModel {
             if header.windows.len() != header.networks {
                 return Err("model header: one entry per window expected".into());
             }
+            let file = shared.expect("a stitched model is read from a shared file");
             for (w, entry) in std::mem::take(&mut header.windows).into_iter().enumerate() {
-                let bytes = take("a window")?;
-                // A window is one fit (version 1): refused before reading, so that a crafted file
-                // cannot nest windows until the stack overflows.
-                if !bytes.starts_with(MODEL_MAGIC) {
+                let window = take("a window")?;
+                // A window is one fit (version 1): refused here, so that a crafted file cannot
+                // nest windows until the stack overflows when the window is decoded.
+                if !window.starts_with(MODEL_MAGIC) {
                     return Err(format!("window {w} is not the model of one fit"));
                 }
-                let model = Self::from_bytes(bytes).map_err(|e| format!("window {w}: {e}"))?;
-                windows.push((entry, model));
+                let frames = match entry.frames {
+                    Some(frames) => frames,
+                    // A file written before the header said each window's frames: the window's
+                    // own header says it (parsed, not kept).
+                    None => window_frames(window).map_err(|e| format!("window {w}: {e}"))?,
+                };
+                let start = window.as_ptr() as usize - bytes.as_ptr() as usize;
+                let source = WindowBytes { file: file.clone(), range: start..start + window.len() };
+                windows.push(Window::lazy(entry, frames, source));
             }
             return Self::from_windows(header, windows);
         }
@@ -176,9 +215,9 @@ impl FittedModel {
         Ok(model)
     }
 
-    /// A stitched model from its header and its windows' models, checked as
-    /// [`FittedModel::stitched`] builds them.
-    fn from_windows(header: Header, windows: Vec<(WindowHeader, FittedModel)>) -> Result<Self, String> {
+    /// A stitched model from its header and its windows (not decoded), checked as
+    /// [`FittedModel::stitched`] builds them as far as the header tells.
+    fn from_windows(header: Header, windows: Vec<Window>) -> Result<Self, String> {
         let frames = header.time_axis.frames();
         if header.frame_poses.as_ref().is_some_and(|p| p.len() != frames) {
             return Err("model header: one pose per frame expected".into());
@@ -186,11 +225,7 @@ impl FittedModel {
         if header.bodies.iter().any(|b| !b.fits(frames)) {
             return Err("model header: a moving body does not cover the sequence's frames".into());
         }
-        let windows: Vec<Window> = windows
-            .into_iter()
-            .map(|(entry, model)| Window { start: entry.start, model, object_ids: entry.object_ids })
-            .collect();
-        check_windows(&header.time_axis, header.frame_poses.is_some(), &windows)?;
+        check_windows(&header.time_axis, &windows)?;
         let known: Vec<u32> = header.bodies.iter().map(|b| b.id).collect();
         if windows.iter().flat_map(|w| &w.object_ids).any(|id| !known.contains(id)) {
             return Err("model header: a window's body is no object of the log".into());
@@ -209,6 +244,21 @@ impl FittedModel {
         model.check_finite().map_err(|e| format!("corrupt model: {e}"))?;
         Ok(model)
     }
+}
+
+/// The frames of a window's own model file (version 1) `bytes`, from its header alone.
+fn window_frames(bytes: &[u8]) -> Result<usize, String> {
+    /// The one field of the header read here; serde skips the others.
+    #[derive(Deserialize)]
+    struct AxisOnly {
+        time_axis: TimeAxis,
+    }
+    let rest = &bytes[MODEL_MAGIC.len()..];
+    let len = rest.get(..8).map(|l| u64::from_le_bytes(l.try_into().expect("8 bytes")) as usize);
+    let header =
+        len.and_then(|len| rest.get(8..8usize.checked_add(len)?)).ok_or("model file truncated in the header")?;
+    let axis: AxisOnly = serde_json::from_slice(header).map_err(|e| format!("corrupt model header: {e}"))?;
+    Ok(axis.time_axis.frames())
 }
 
 /// The serialised description of a model, ahead of its networks.

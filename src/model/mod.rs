@@ -33,6 +33,7 @@ pub use check::NonFiniteModel;
 pub use objects::{MovingBody, RigidTrack};
 pub use report::{FitReport, FrameReport, LossCurve, LossRecord, LossTerms, PhaseTimes};
 pub use time::{MAX_EXTRAPOLATION_S, QueryError, TimeAxis};
+pub use windows::LinkShare;
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
@@ -241,30 +242,30 @@ impl FittedModel {
     }
 
     /// The same model answering from the network alone (for comparisons): no tracks, no bodies,
-    /// no still world.
-    pub fn without_tracks(&self) -> Self {
+    /// no still world. Decodes every window of a stitched model read from a file; fails if one
+    /// cannot be read.
+    pub fn without_tracks(&self) -> Result<Self, QueryError> {
         let motion = match &self.motion {
             // A stitched model: each window's network alone.
-            Motion::Windows(windows) => Motion::Windows(
-                windows
-                    .iter()
-                    .map(|w| windows::Window {
-                        start: w.start,
-                        model: w.model.without_tracks(),
-                        object_ids: Vec::new(),
-                    })
-                    .collect(),
+            Motion::Windows(_) => Motion::Windows(
+                self.windows()?
+                    .into_iter()
+                    .map(|(start, model)| Ok(windows::Window::decoded(start, model.without_tracks()?, Vec::new())))
+                    .collect::<Result<_, QueryError>>()?,
             ),
             motion => motion.clone(),
         };
-        Self {
+        Ok(Self {
+            method: self.method,
+            time_axis: self.time_axis.clone(),
+            report: self.report.clone(),
             motion,
+            frame_poses: self.frame_poses.clone(),
             tracks: Vec::new(),
             bodies: Vec::new(),
             still_world: false,
             free_points: Vec::new(),
-            ..self.clone()
-        }
+        })
     }
 
     /// Rigid tracks of moving clusters the model holds.
@@ -483,44 +484,48 @@ impl FittedModel {
     }
 
     /// Per frame k, the moving body (its [`MovingBody::id`]) each of `frames[k]`'s points (sensor
-    /// coordinates of sweep k) lies on, -1 for none: the `object_id` of the labels.
-    pub fn object_ids(&self, frames: &[Vec<Point>]) -> Vec<Vec<i32>> {
+    /// coordinates of sweep k) lies on, -1 for none: the `object_id` of the labels. Fails only
+    /// for a stitched model whose window cannot be read ([`QueryError::CorruptWindow`]).
+    pub fn object_ids(&self, frames: &[Vec<Point>]) -> Result<Vec<Vec<i32>>, QueryError> {
         frames.iter().enumerate().map(|(k, points)| self.frame_object_ids(k, points)).collect()
     }
 
     /// [`FittedModel::object_ids`] of frame `k`'s `points` (sensor coordinates of sweep k): a
     /// long log's labels are written one frame at a time.
-    pub fn frame_object_ids(&self, k: usize, points: &[Point]) -> Vec<i32> {
+    pub fn frame_object_ids(&self, k: usize, points: &[Point]) -> Result<Vec<i32>, QueryError> {
         if self.bodies.is_empty() || k >= self.time_axis.frames() {
-            return vec![-1; points.len()];
+            return Ok(vec![-1; points.len()]);
         }
         if let Motion::Windows(windows) = &self.motion {
-            return windows::frame_object_ids(windows, k, points);
+            return windows::frame_object_ids(self, windows, k, points);
         }
         let in_fit: Vec<Point> = match &self.frame_poses {
             Some(poses) => points.iter().map(|p| poses[k].apply(p)).collect(),
             None => points.to_vec(),
         };
-        self.body_members(&in_fit, k as f64)
+        Ok(self
+            .body_members(&in_fit, k as f64)
             .into_iter()
             .map(|owner| owner.map_or(-1, |n| self.bodies[n].id as i32))
-            .collect()
+            .collect())
     }
 
     /// Scene flow of every frame's points to the next frame: entry k has one vector (m) per
-    /// point of `frames[k]`, for k in 0..T-1.
-    pub fn scene_flow(&self, frames: &[Vec<Point>]) -> Vec<Vec<Point>> {
+    /// point of `frames[k]`, for k in 0..T-1. Fails only for a stitched model whose window
+    /// cannot be read ([`QueryError::CorruptWindow`]) or for non-finite points.
+    pub fn scene_flow(&self, frames: &[Vec<Point>]) -> Result<Vec<Vec<Point>>, QueryError> {
         let t = self.time_axis.frames();
         (0..t.saturating_sub(1)).map(|k| self.frame_scene_flow(k, &frames[k])).collect()
     }
 
     /// [`FittedModel::scene_flow`] of frame `k`'s `points` (`k + 1` a frame of the model): a long
     /// log's labels are written one frame at a time.
-    pub fn frame_scene_flow(&self, k: usize, points: &[Point]) -> Vec<Point> {
+    /// Fails as [`FittedModel::scene_flow`] does.
+    pub fn frame_scene_flow(&self, k: usize, points: &[Point]) -> Result<Vec<Point>, QueryError> {
         let from = self.time_axis.frame_time(k);
         let to = self.time_axis.frame_time(k + 1);
-        let moved = self.positions(points, from, &[to]).expect("frame times are in range");
-        points.iter().zip(&moved).map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]).collect()
+        let moved = self.positions(points, from, &[to])?;
+        Ok(points.iter().zip(&moved).map(|(p, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]).collect())
     }
 }
 
@@ -556,7 +561,7 @@ mod tests {
         for (got, want) in at.iter().zip(&expected) {
             assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5), "{at:?}");
         }
-        let alone = model.without_tracks().positions(&queries, 1.5, &[3.0]).unwrap();
+        let alone = model.without_tracks().unwrap().positions(&queries, 1.5, &[3.0]).unwrap();
         assert_eq!(alone[0], queries[0], "without tracks the network answers");
     }
 
@@ -624,14 +629,14 @@ mod tests {
         };
         check(&model, &expected);
         // The labels' object ids: frame 2's points on the body (x = 2..3) are object 0.
-        let ids = model.object_ids(&[vec![], vec![], vec![[2.2, 0.0, 0.0], [20.0, 0.0, 0.0]], vec![]]);
+        let ids = model.object_ids(&[vec![], vec![], vec![[2.2, 0.0, 0.0], [20.0, 0.0, 0.0]], vec![]]).unwrap();
         assert_eq!(ids[2], vec![0, -1]);
         // The same answers after a round trip through the file format.
         let back = FittedModel::from_bytes(&model.to_bytes().unwrap()).unwrap();
         check(&back, &expected);
         assert_eq!(back.bodies(), model.bodies());
         // The network alone moves everything along y.
-        let alone = model.without_tracks().positions(&queries[3..], 1.0, &[3.0]).unwrap();
+        let alone = model.without_tracks().unwrap().positions(&queries[3..], 1.0, &[3.0]).unwrap();
         assert_eq!(alone[0], [50.0, 52.0, 0.0]);
     }
 
@@ -649,14 +654,14 @@ mod tests {
         for (got, want) in at.iter().zip(&expected) {
             assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5), "{at:?}");
         }
-        let ids = model.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]);
+        let ids = model.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]).unwrap();
         assert_eq!(ids[1], vec![0, -1, -1]);
         // A fit that kept the ground has the bodies' undersides among their members: the point
         // 0.47 m below a member is the road there, and stays.
         let mut kept_ground = scene_model();
         let params = crate::model::params::FitParams { remove_ground: Some(false), ..Default::default() };
         kept_ground.report.params = Some(params.check(Method::Mbnt).unwrap());
-        let ids = kept_ground.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]);
+        let ids = kept_ground.object_ids(&[vec![], queries.to_vec(), vec![], vec![]]).unwrap();
         assert_eq!(ids[1], vec![-1, -1, -1]);
     }
 }

@@ -29,6 +29,16 @@ pub enum QueryError {
         /// Index of the point in the query.
         index: usize,
     },
+    /// A window of a stitched model file that cannot be read. A stitched model's windows are
+    /// decoded when a query first needs them, so a damaged window is found then, not when the
+    /// file is loaded.
+    #[error("window {window} of the stitched model cannot be read: {detail}")]
+    CorruptWindow {
+        /// The window's index.
+        window: usize,
+        /// What is wrong with it.
+        detail: String,
+    },
 }
 
 /// How long (s) a moving body or rigid track is predicted past the frames it was seen in;

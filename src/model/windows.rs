@@ -23,7 +23,13 @@
 //!   stitched model lists each object once over the whole log with the labels' ids.
 //!
 //! Memory: a window model holds what its queries need (network, body members, free points);
-//! the frames a window was fitted on are not kept.
+//! the frames a window was fitted on are not kept. A stitched model read from a file keeps the
+//! file's bytes and decodes a window the first time a query needs it ([`Window`]), so that
+//! loading a long log's model reads its header only and a query decodes the windows its chain
+//! touches.
+
+use std::ops::Range;
+use std::sync::{Arc, OnceLock};
 
 use serde::{Deserialize, Serialize};
 
@@ -36,22 +42,50 @@ use crate::geometry::rigid::Rigid;
 use crate::model::params::Method;
 
 /// One window of a stitched model.
+///
+/// A window read from a model file is decoded the first time a query needs it: loading a long
+/// log's model reads only the file's header, and a query decodes only the windows its chain
+/// touches (issue 21). A window that cannot be read is refused at that first use
+/// ([`QueryError::CorruptWindow`]); loading checks only the file's structure (each window's
+/// length and version). A built window ([`Window::decoded`]) is decoded from the start.
 #[derive(Debug, Clone)]
 pub(super) struct Window {
     /// The window's first frame in the log.
     pub(super) start: usize,
-    /// The model of the window's frames alone (time axis: its slice of the log's timestamps,
-    /// or frame indices 0..W-1 without timestamps).
-    pub(super) model: FittedModel,
-    /// The log-wide object id of each of `model`'s bodies, in their order.
+    /// The window's frames (its model's time axis: its slice of the log's timestamps, or frame
+    /// indices 0..frames-1 without timestamps).
+    pub(super) frames: usize,
+    /// The log-wide object id of each of the model's bodies, in their order.
     pub(super) object_ids: Vec<u32>,
+    /// The model of the window's frames alone, once decoded (or its decoding error).
+    model: OnceLock<Result<FittedModel, QueryError>>,
+    /// Where the window's own model file (version 1) lies in the stitched model's file, for a
+    /// window read from one: decoded from there on first use, and written back unchanged.
+    source: Option<WindowBytes>,
 }
+
+/// A window's bytes in the stitched model's file.
+#[derive(Debug, Clone)]
+pub(super) struct WindowBytes {
+    /// The whole file, shared by its windows.
+    pub(super) file: Arc<Vec<u8>>,
+    /// The window's own model file within it.
+    pub(super) range: Range<usize>,
+}
+
+/// A pair of bodies of neighbouring windows `(w - 1, w)` and how much they overlap: (index in
+/// window `w - 1`, index in window `w`, share of their members lying on the other's).
+pub type LinkShare = (usize, usize, f64);
 
 /// What the model file keeps of a window besides its model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub(super) struct WindowHeader {
     /// See [`Window::start`].
     pub(super) start: usize,
+    /// See [`Window::frames`]; absent in files written before windows loaded lazily (the
+    /// window's own header says it then).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub(super) frames: Option<usize>,
     /// See [`Window::object_ids`].
     pub(super) object_ids: Vec<u32>,
 }
@@ -63,14 +97,75 @@ pub(super) struct WindowHeader {
 const LINK_MIN_SHARE: f64 = 0.5;
 
 impl Window {
-    /// The window's frames.
-    fn frames(&self) -> usize {
-        self.model.time_axis.frames()
+    /// A window built from its model (a fit's, or a test's): decoded from the start.
+    pub(super) fn decoded(start: usize, model: FittedModel, object_ids: Vec<u32>) -> Self {
+        Self { start, frames: model.time_axis.frames(), object_ids, model: OnceLock::from(Ok(model)), source: None }
+    }
+
+    /// A window of a model file, decoded on first use ([`Window::model`]).
+    pub(super) fn lazy(header: WindowHeader, frames: usize, source: WindowBytes) -> Self {
+        Self {
+            start: header.start,
+            frames,
+            object_ids: header.object_ids,
+            model: OnceLock::new(),
+            source: Some(source),
+        }
+    }
+
+    /// The window's entry in the file's header.
+    pub(super) fn header(&self) -> WindowHeader {
+        WindowHeader { start: self.start, frames: Some(self.frames), object_ids: self.object_ids.clone() }
+    }
+
+    /// The window's own model file (version 1): the bytes it was read from, unchanged, or its
+    /// model encoded. A window read from a file is written back as read, decoded or not (a
+    /// corrupt one stays refused at first use when that file is loaded again).
+    pub(super) fn encode(&self) -> Vec<u8> {
+        match (&self.source, self.model.get()) {
+            (Some(source), _) => source.file[source.range.clone()].to_vec(),
+            (None, Some(Ok(model))) => model.encode(),
+            (None, _) => unreachable!("a window without bytes is built decoded"),
+        }
+    }
+
+    /// The model of a window built from it (not read from a file), which the window is written
+    /// from.
+    pub(super) fn built_model(&self) -> Option<&FittedModel> {
+        match (&self.source, self.model.get()) {
+            (None, Some(Ok(model))) => Some(model),
+            _ => None,
+        }
+    }
+
+    /// Whether the window's model has been decoded (successfully or not).
+    pub(super) fn is_decoded(&self) -> bool {
+        self.model.get().is_some()
+    }
+
+    /// The window's model, decoded from the file on first use and checked against the log's
+    /// time axis (`log_axis`) and whether the log was fitted with poses; `w` is the window's
+    /// index, for the error.
+    pub(super) fn model(&self, w: usize, log_axis: &TimeAxis, with_poses: bool) -> Result<&FittedModel, QueryError> {
+        let decoded = self.model.get_or_init(|| {
+            let source = self.source.as_ref().expect("a window without bytes is built decoded");
+            FittedModel::from_bytes(&source.file[source.range.clone()])
+                .and_then(|model| check_window(self, &model, log_axis, with_poses).map(|()| model))
+                .map_err(|detail| QueryError::CorruptWindow { window: w, detail })
+        });
+        decoded.as_ref().map_err(Clone::clone)
+    }
+
+    /// The decoded model, for changing it (tests); the window is then written from the model.
+    #[cfg(test)]
+    pub(super) fn model_mut(&mut self) -> &mut FittedModel {
+        self.source = None;
+        self.model.get_mut().expect("a decoded window").as_mut().expect("a readable window")
     }
 
     /// One past the window's last frame in the log.
     fn end(&self) -> usize {
-        self.start + self.frames()
+        self.start + self.frames
     }
 
     /// `t` (the log's axis) on the window's own axis: the same seconds with timestamps, the
@@ -78,6 +173,12 @@ impl Window {
     fn local_time(&self, log_axis: &TimeAxis, t: f64) -> f64 {
         if log_axis.timestamps_s().is_some() { t } else { t - self.start as f64 }
     }
+}
+
+/// Every window's model, in order (decoding those not decoded yet).
+fn models<'a>(model: &FittedModel, windows: &'a [Window]) -> Result<Vec<&'a FittedModel>, QueryError> {
+    let with_poses = model.frame_poses.is_some();
+    windows.iter().enumerate().map(|(w, window)| window.model(w, &model.time_axis, with_poses)).collect()
 }
 
 /// The hand-over frame (in the log) between each window and the next: the middle of their
@@ -91,10 +192,11 @@ fn owner(handoffs: &[usize], u: f64) -> usize {
     handoffs.partition_point(|&h| h as f64 <= u)
 }
 
-/// The checks a stitched model's windows pass (when built and when read from a file): they
-/// cover the log's frames in order, each overlapping the next by at least one frame, each a
-/// single model on its slice of the log's time axis.
-pub(super) fn check_windows(axis: &TimeAxis, with_poses: bool, windows: &[Window]) -> Result<(), String> {
+/// The checks a stitched model's windows pass (when built and when read from a file, before
+/// any window is decoded): they cover the log's frames in order, each overlapping the next by
+/// at least one frame and of at least 2 frames. Each window's model is checked against the log
+/// by [`check_window`] when it is decoded.
+pub(super) fn check_windows(axis: &TimeAxis, windows: &[Window]) -> Result<(), String> {
     let Some(first) = windows.first() else { return Err("a stitched model without windows".into()) };
     if first.start != 0 {
         return Err("the first window does not start at frame 0".into());
@@ -104,10 +206,7 @@ pub(super) fn check_windows(axis: &TimeAxis, with_poses: bool, windows: &[Window
         return Err(format!("the windows end at frame {}, the log has {} frames", last.end(), axis.frames()));
     }
     for (w, window) in windows.iter().enumerate() {
-        if matches!(window.model.motion, Motion::Windows(_)) {
-            return Err(format!("window {w} is itself stitched"));
-        }
-        if window.frames() < 2 {
+        if window.frames < 2 {
             return Err(format!("window {w} has fewer than 2 frames"));
         }
         if let Some(next) = windows.get(w + 1)
@@ -115,16 +214,29 @@ pub(super) fn check_windows(axis: &TimeAxis, with_poses: bool, windows: &[Window
         {
             return Err(format!("windows {w} and {} do not overlap in order", w + 1));
         }
-        let expected = axis.timestamps_s().map(|ts| ts[window.start..window.end()].to_vec());
-        if window.model.time_axis.timestamps_s().map(<[f64]>::to_vec) != expected {
-            return Err(format!("window {w}'s times are not its frames' times in the log"));
-        }
-        if window.model.frame_poses.is_some() != with_poses {
-            return Err(format!("window {w} and the log disagree on whether the fit used poses"));
-        }
-        if window.object_ids.len() != window.model.bodies.len() {
-            return Err(format!("window {w}: one object id per moving body expected"));
-        }
+    }
+    Ok(())
+}
+
+/// The checks a window's model passes against its place in the log: a single model on its
+/// slice of the log's time axis, fitted with poses as the log was, with one object id per
+/// moving body.
+fn check_window(window: &Window, model: &FittedModel, axis: &TimeAxis, with_poses: bool) -> Result<(), String> {
+    if matches!(model.motion, Motion::Windows(_)) {
+        return Err("the window is itself stitched".into());
+    }
+    if model.time_axis.frames() != window.frames {
+        return Err(format!("{} frames, the file's header says {}", model.time_axis.frames(), window.frames));
+    }
+    let expected = axis.timestamps_s().map(|ts| ts[window.start..window.end()].to_vec());
+    if model.time_axis.timestamps_s().map(<[f64]>::to_vec) != expected {
+        return Err("the window's times are not its frames' times in the log".into());
+    }
+    if model.frame_poses.is_some() != with_poses {
+        return Err("the window and the log disagree on whether the fit used poses".into());
+    }
+    if window.object_ids.len() != model.bodies.len() {
+        return Err("one object id per moving body expected".into());
     }
     Ok(())
 }
@@ -146,26 +258,36 @@ impl FittedModel {
     ) -> Result<Self, String> {
         let mut windows: Vec<Window> = windows
             .into_iter()
-            .map(|(start, model)| Window { start, object_ids: vec![0; model.bodies.len()], model })
+            .map(|(start, model)| {
+                let ids = vec![0; model.bodies.len()];
+                Window::decoded(start, model, ids)
+            })
             .collect();
-        check_windows(&time_axis, frame_poses.is_some(), &windows)?;
+        check_windows(&time_axis, &windows)?;
+        // The models are held apart while the windows' object ids are set, and put back at the end.
+        let models: Vec<FittedModel> =
+            windows.iter_mut().map(|w| w.model.take().expect("built decoded").expect("built from a model")).collect();
+        for (w, (window, model)) in windows.iter().zip(&models).enumerate() {
+            check_window(window, model, &time_axis, frame_poses.is_some()).map_err(|e| format!("window {w}: {e}"))?;
+        }
+        let parts: Vec<&FittedModel> = models.iter().collect();
         // Window-to-log transforms of fit coordinates: a window's fit coordinates are its first
         // frame's sensor coordinates (with poses), the log's are frame 0's.
         let to_log = window_to_log(frame_poses.as_deref(), &windows);
-        let objects = link_bodies(&windows, &to_log);
+        let objects = link_bodies(&windows, &parts, &to_log);
         for (window, ids) in windows.iter_mut().zip(&objects.ids) {
             window.object_ids.clone_from(ids);
         }
         let handoffs = handoffs(&windows);
-        let bodies = log_bodies(&windows, &to_log, &handoffs, objects.count, time_axis.frames());
+        let bodies = log_bodies(&windows, &parts, &to_log, &handoffs, objects.count, time_axis.frames());
         report.frames = (0..time_axis.frames())
             .map(|k| {
-                let w = &windows[owner(&handoffs, k as f64)];
-                w.model.report.frames.get(k - w.start).copied().unwrap_or_default()
+                let w = owner(&handoffs, k as f64);
+                parts[w].report.frames.get(k - windows[w].start).copied().unwrap_or_default()
             })
             .collect();
-        for (k, w) in windows.iter().enumerate() {
-            let r = &w.model.report;
+        for (k, part) in parts.iter().enumerate() {
+            let r = &part.report;
             report.losses.extend(r.losses.iter().map(|l| LossRecord { window: Some(k), ..*l }));
             report.iterations += r.iterations;
             report.rigid_tracks += r.rigid_tracks;
@@ -174,7 +296,10 @@ impl FittedModel {
             report.phase_times += r.phase_times;
         }
         report.moving_bodies = bodies.len();
-        let still_world = windows.iter().any(|w| w.model.still_world);
+        let still_world = parts.iter().any(|m| m.still_world);
+        for (window, model) in windows.iter_mut().zip(models) {
+            window.model = OnceLock::from(Ok(model));
+        }
         Ok(Self {
             method,
             time_axis,
@@ -201,21 +326,43 @@ impl FittedModel {
     /// pair of windows `(w - 1, w)`, each pair of bodies (index in window `w - 1`, index in
     /// window `w`) with members in the overlap and the share of those members lying on the
     /// other body's (pairs at 0.5 or more are linked, the highest first). Empty for a model of
-    /// one fit.
-    pub fn window_link_shares(&self) -> Vec<Vec<(usize, usize, f64)>> {
-        let Motion::Windows(windows) = &self.motion else { return Vec::new() };
+    /// one fit. Decodes every window of a model read from a file; fails if one cannot be read.
+    pub fn window_link_shares(&self) -> Result<Vec<Vec<LinkShare>>, QueryError> {
+        let Motion::Windows(windows) = &self.motion else { return Ok(Vec::new()) };
+        let parts = models(self, windows)?;
         let to_log = window_to_log(self.frame_poses.as_deref(), windows);
-        (1..windows.len())
-            .map(|w| link_shares(windows, &to_log, w).into_iter().map(|(share, a, b)| (a, b, share)).collect())
-            .collect()
+        Ok((1..windows.len())
+            .map(|w| link_shares(windows, &parts, &to_log, w).into_iter().map(|(share, a, b)| (a, b, share)).collect())
+            .collect())
     }
 
     /// The windows of a stitched model (first frame in the log, and the window's own model);
-    /// empty for a model of one fit.
-    pub fn windows(&self) -> Vec<(usize, &FittedModel)> {
+    /// empty for a model of one fit. Decodes every window of a model read from a file; fails if
+    /// one cannot be read.
+    pub fn windows(&self) -> Result<Vec<(usize, &FittedModel)>, QueryError> {
         match &self.motion {
-            Motion::Windows(windows) => windows.iter().map(|w| (w.start, &w.model)).collect(),
+            Motion::Windows(windows) => {
+                Ok(windows.iter().zip(models(self, windows)?).map(|(w, model)| (w.start, model)).collect())
+            }
+            _ => Ok(Vec::new()),
+        }
+    }
+
+    /// The first frame in the log of each window of a stitched model, without decoding any;
+    /// empty for a model of one fit.
+    pub fn window_starts(&self) -> Vec<usize> {
+        match &self.motion {
+            Motion::Windows(windows) => windows.iter().map(|w| w.start).collect(),
             _ => Vec::new(),
+        }
+    }
+
+    /// How many of a stitched model's windows have been decoded (all of a model built by a fit;
+    /// those queries have needed of a model read from a file); 0 for a model of one fit.
+    pub fn decoded_windows(&self) -> usize {
+        match &self.motion {
+            Motion::Windows(windows) => windows.iter().filter(|w| w.is_decoded()).count(),
+            _ => 0,
         }
     }
 }
@@ -245,6 +392,9 @@ pub(super) fn positions(
     let mut entry: Vec<Option<Entry>> = vec![None; hi - lo + 1];
     entry[home - lo] = Some(Entry { points: points.to_vec(), t: t_obs, carried: None });
     let to_log = window_to_log(model.frame_poses.as_deref(), windows);
+    // Only the windows from lo to hi are decoded (a window read from a file, on first use).
+    let with_poses = model.frame_poses.is_some();
+    let part = |w: usize| windows[w].model(w, axis, with_poses);
     // Points that leave a window on a body whose object the next window does not hold (a car
     // that window saw too sparsely to find again): they stay on that body, carried on past its
     // window (`body_pose_beyond`), for every time past the hand-over.
@@ -256,7 +406,7 @@ pub(super) fn positions(
      -> Result<Entry, QueryError> {
         let window = &windows[from];
         let t_handoff = axis.frame_time(handoff);
-        let (moved, owners) = window.model.positions_carried(
+        let (moved, owners) = part(from)?.positions_carried(
             &current.points,
             window.local_time(axis, current.t),
             &[window.local_time(axis, t_handoff)],
@@ -278,7 +428,7 @@ pub(super) fn positions(
         for (i, (decided, next_part)) in owners.iter().zip(&carried).enumerate() {
             if let (Carry::Body(body), Carry::Open, None) = (*decided, next_part, &orphans[i]) {
                 let in_log = sensor_to_log.map_or(moved[i], |pose| pose.apply(&moved[i]));
-                let on_body = body_pose_beyond(window, body, window.local_time(axis, t_handoff)).inverse();
+                let on_body = body_pose_beyond(part(from)?, body, window.local_time(axis, t_handoff)).inverse();
                 let at = on_body.apply(&to_log[from].inverse().apply(&in_log));
                 orphans[i] = Some(Orphan { window: from, body, at, first_owner: to });
             }
@@ -309,13 +459,13 @@ pub(super) fn positions(
         let at = entry[w - lo].as_ref().expect("every window from lo to hi is entered");
         let local: Vec<f64> = asked.iter().map(|&j| window.local_time(axis, times[j])).collect();
         let (answers, _) =
-            window.model.positions_carried(&at.points, window.local_time(axis, at.t), &local, at.carried.as_deref())?;
+            part(w)?.positions_carried(&at.points, window.local_time(axis, at.t), &local, at.carried.as_deref())?;
         let orphans = if w > home { &forward_orphans } else { &backward_orphans };
         for i in 0..points.len() {
             let orphan = orphans[i].as_ref().filter(|o| if w > home { w >= o.first_owner } else { w <= o.first_owner });
             for (n, &j) in asked.iter().enumerate() {
                 out[i * n_times + j] = match orphan {
-                    Some(o) => o.position(model, windows, &to_log, times[j], u_times[j]),
+                    Some(o) => o.position(model, windows, part(o.window)?, &to_log, times[j], u_times[j]),
                     None => answers[i * asked.len() + n],
                 };
             }
@@ -348,9 +498,18 @@ struct Orphan {
 impl Orphan {
     /// Where the point is at log time `time` (fractional log frame `u`), in the sensor
     /// coordinates of that time.
-    fn position(&self, model: &FittedModel, windows: &[Window], to_log: &[Rigid], time: f64, u: f64) -> Point {
+    /// `part` is the model of the point's window.
+    fn position(
+        &self,
+        model: &FittedModel,
+        windows: &[Window],
+        part: &FittedModel,
+        to_log: &[Rigid],
+        time: f64,
+        u: f64,
+    ) -> Point {
         let window = &windows[self.window];
-        let body_pose = body_pose_beyond(window, self.body, window.local_time(&model.time_axis, time));
+        let body_pose = body_pose_beyond(part, self.body, window.local_time(&model.time_axis, time));
         let in_log = to_log[self.window].apply(&body_pose.apply(&self.at));
         match &model.frame_poses {
             Some(poses) => pose_at(poses, u).inverse().apply(&in_log),
@@ -359,16 +518,16 @@ impl Orphan {
     }
 }
 
-/// The pose of body `b` of `window` (the window's fit coordinates) at `t` on the window's own
+/// The pose of body `b` of a window's model `window` (the window's fit coordinates) at `t` on the window's own
 /// time axis, also outside its frames. Inside, as the window's model answers. Past the last
 /// frame (before the first), the body's motion at that end goes on at constant velocity and
 /// turn rate (the end step repeated, as the fit carries a body on inside its window), up to the
 /// axis's extrapolation horizon past the last (first) frame the body was seen in, and is held
 /// after that: a body that leaves a window keeps moving as it did while the next window, which
 /// does not know it, owns the time.
-fn body_pose_beyond(window: &Window, b: usize, t: f64) -> Rigid {
-    let axis = &window.model.time_axis;
-    let body = &window.model.bodies[b];
+fn body_pose_beyond(window: &FittedModel, b: usize, t: f64) -> Rigid {
+    let axis = &window.time_axis;
+    let body = &window.bodies[b];
     let last = axis.frames() - 1;
     if let Ok(u) = axis.to_frame_index(t) {
         return pose_at(&body.poses, u);
@@ -413,15 +572,21 @@ struct Entry {
 }
 
 /// [`FittedModel::frame_object_ids`] of a stitched model: the window owning frame `k` labels its
-/// points, with the log-wide ids.
-pub(super) fn frame_object_ids(windows: &[Window], k: usize, points: &[Point]) -> Vec<i32> {
-    let window = &windows[owner(&handoffs(windows), k as f64)];
-    let ids = window.model.frame_object_ids(k - window.start, points);
-    ids.into_iter()
-        .map(|id| {
-            window.model.bodies.iter().position(|b| b.id as i32 == id).map_or(-1, |n| window.object_ids[n] as i32)
-        })
-        .collect()
+/// points, with the log-wide ids (decoding that window only).
+pub(super) fn frame_object_ids(
+    model: &FittedModel,
+    windows: &[Window],
+    k: usize,
+    points: &[Point],
+) -> Result<Vec<i32>, QueryError> {
+    let w = owner(&handoffs(windows), k as f64);
+    let window = &windows[w];
+    let part = window.model(w, &model.time_axis, model.frame_poses.is_some())?;
+    let ids = part.frame_object_ids(k - window.start, points)?;
+    Ok(ids
+        .into_iter()
+        .map(|id| part.bodies.iter().position(|b| b.id as i32 == id).map_or(-1, |n| window.object_ids[n] as i32))
+        .collect())
 }
 
 /// Log-wide object ids of every window's bodies, and how many objects there are.
@@ -435,17 +600,18 @@ struct Objects {
 /// Links the bodies of neighbouring windows (see [`LINK_MIN_SHARE`]) and numbers the objects
 /// in order of first appearance. Each body links to at most one of the next window's, the
 /// pairs sharing the most points first.
-fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
+fn link_bodies(windows: &[Window], parts: &[&FittedModel], to_log: &[Rigid]) -> Objects {
     let mut ids: Vec<Vec<u32>> = Vec::with_capacity(windows.len());
     let mut count = 0u32;
-    for (w, window) in windows.iter().enumerate() {
-        let mut mine: Vec<Option<u32>> = vec![None; window.model.bodies.len()];
+    for (w, part) in parts.iter().enumerate() {
+        let mut mine: Vec<Option<u32>> = vec![None; part.bodies.len()];
         if w > 0 {
-            let previous = &windows[w - 1];
-            let mut pairs: Vec<(f64, usize, usize)> =
-                link_shares(windows, to_log, w).into_iter().filter(|&(share, _, _)| share >= LINK_MIN_SHARE).collect();
+            let mut pairs: Vec<(f64, usize, usize)> = link_shares(windows, parts, to_log, w)
+                .into_iter()
+                .filter(|&(share, _, _)| share >= LINK_MIN_SHARE)
+                .collect();
             pairs.sort_by(|x, y| y.0.total_cmp(&x.0));
-            let mut taken = vec![false; previous.model.bodies.len()];
+            let mut taken = vec![false; parts[w - 1].bodies.len()];
             for (_, a, b) in pairs {
                 if !taken[a] && mine[b].is_none() {
                     taken[a] = true;
@@ -470,20 +636,19 @@ fn link_bodies(windows: &[Window], to_log: &[Rigid]) -> Objects {
 /// For each pair of a body of window `w - 1` and one of window `w` (`w >= 1`) with members in
 /// their overlap: the share of both bodies' member points in the overlap's frames that lie
 /// within [`TRACK_MEMBER_RADIUS_M`] of the other's members of the same frame, and the pair.
-fn link_shares(windows: &[Window], to_log: &[Rigid], w: usize) -> Vec<(f64, usize, usize)> {
+fn link_shares(windows: &[Window], parts: &[&FittedModel], to_log: &[Rigid], w: usize) -> Vec<(f64, usize, usize)> {
     let (previous, window) = (&windows[w - 1], &windows[w]);
     let overlap = window.start..previous.end();
     // Each body's members in each overlap frame, in the log's fit coordinates.
-    let members = |win: &Window, to: &Rigid| -> Vec<Vec<Vec<Point>>> {
-        win.model
-            .bodies
+    let members = |win: &Window, part: &FittedModel, to: &Rigid| -> Vec<Vec<Vec<Point>>> {
+        part.bodies
             .iter()
             .map(|body| {
                 overlap.clone().map(|k| body.members[k - win.start].iter().map(|p| to.apply(p)).collect()).collect()
             })
             .collect()
     };
-    let (before, after) = (members(previous, &to_log[w - 1]), members(window, &to_log[w]));
+    let (before, after) = (members(previous, parts[w - 1], &to_log[w - 1]), members(window, parts[w], &to_log[w]));
     let mut pairs = Vec::new();
     for (a, frames_a) in before.iter().enumerate() {
         for (b, frames_b) in after.iter().enumerate() {
@@ -516,6 +681,7 @@ fn near_count(points: &[Point], others: &[Point]) -> usize {
 /// extrapolation). Members are left empty: queries use the windows' bodies, which hold them.
 fn log_bodies(
     windows: &[Window],
+    models: &[&FittedModel],
     to_log: &[Rigid],
     handoffs: &[usize],
     objects: usize,
@@ -546,7 +712,7 @@ fn log_bodies(
                 // which orders windows by time).
                 let &(w, b) = parts.iter().min_by_key(|(w, _)| w.abs_diff(own)).expect("an object has a part");
                 let window = &windows[w];
-                let part = &window.model.bodies[b];
+                let part = &models[w].bodies[b];
                 let local = k.clamp(window.start, window.end() - 1) - window.start;
                 let inside = (window.start..window.end()).contains(&k);
                 body.poses.push(to_log[w].compose(&pose_at(&part.poses, local as f64)));
@@ -556,9 +722,9 @@ fn log_bodies(
             // The extent the window seeing the object most often measured.
             let &(w, b) = parts
                 .iter()
-                .max_by_key(|&&(w, b)| windows[w].model.bodies[b].observed.iter().filter(|&&o| o).count())
+                .max_by_key(|&&(w, b)| models[w].bodies[b].observed.iter().filter(|&&o| o).count())
                 .expect("an object has a part");
-            let part = &windows[w].model.bodies[b];
+            let part = &models[w].bodies[b];
             body.extent_min_m = part.extent_min_m;
             body.extent_max_m = part.extent_max_m;
             body
@@ -586,7 +752,7 @@ mod tests {
 
     #[test]
     fn hand_overs_lie_in_the_middle_of_the_overlaps_and_own_every_time_once() {
-        let window = |start: usize| Window { start, model: scene_model(), object_ids: vec![0] };
+        let window = |start: usize| Window::decoded(start, scene_model(), vec![0]);
         // Three 4-frame windows over 9 frames (starts 0, 3, 5): overlaps {3} and {5, 6}.
         let windows = [window(0), window(3), window(5)];
         let h = handoffs(&windows);
@@ -594,12 +760,15 @@ mod tests {
         let owners: Vec<usize> = (0..9).map(|k| owner(&h, k as f64)).collect();
         assert_eq!(owners, vec![0, 0, 0, 1, 1, 1, 2, 2, 2]);
         assert_eq!(owner(&h, 2.999), 0);
-        assert!(check_windows(&TimeAxis::new(None, 9), true, &windows).is_ok());
+        assert!(check_windows(&TimeAxis::new(None, 9), &windows).is_ok());
         // Gaps, a wrong end and a missing start are refused.
         let gap = [window(0), window(4)];
-        assert!(check_windows(&TimeAxis::new(None, 8), true, &gap).unwrap_err().contains("overlap"));
-        assert!(check_windows(&TimeAxis::new(None, 10), true, &windows).unwrap_err().contains("end at frame 9"));
-        assert!(check_windows(&TimeAxis::new(None, 9), false, &windows).unwrap_err().contains("poses"));
+        assert!(check_windows(&TimeAxis::new(None, 8), &gap).unwrap_err().contains("overlap"));
+        assert!(check_windows(&TimeAxis::new(None, 10), &windows).unwrap_err().contains("end at frame 9"));
+        assert!(check_windows(&TimeAxis::new(None, 8), &windows[1..]).unwrap_err().contains("frame 0"));
+        // A window's model fitted without poses in a log fitted with them is refused.
+        let e = check_window(&windows[0], &scene_model(), &TimeAxis::new(None, 9), false).unwrap_err();
+        assert!(e.contains("poses"), "{e}");
     }
 
     #[test]
@@ -608,14 +777,13 @@ mod tests {
         // is 3 s past the last frame seen.
         let mut model = scene_model();
         model.time_axis = TimeAxis::new(Some(vec![0.0, 1.0, 2.0, 3.0]), 4);
-        let window = Window { start: 0, model, object_ids: vec![0] };
-        let x = |t: f64| body_pose_beyond(&window, 0, t).translation[0];
+        let x = |t: f64| body_pose_beyond(&model, 0, t).translation[0];
         for (t, want) in [(1.5, 1.5), (4.0, 4.0), (5.5, 5.5), (6.0, 6.0), (10.0, 6.0), (-2.5, -2.5), (-9.0, -3.0)] {
             assert!((x(t) - want).abs() < 1e-9, "t = {t}: x = {} instead of {want}", x(t));
         }
         // Seen last at frame 1: carried on inside the window already, held 3 s after frame 1.
-        let mut early = window.clone();
-        early.model.bodies[0].observed = vec![true, true, false, false];
+        let mut early = model.clone();
+        early.bodies[0].observed = vec![true, true, false, false];
         let x = |t: f64| body_pose_beyond(&early, 0, t).translation[0];
         assert!((x(3.5) - 3.5).abs() < 1e-9 && (x(7.0) - 4.0).abs() < 1e-9, "{} {}", x(3.5), x(7.0));
     }
@@ -699,8 +867,9 @@ mod tests {
         }
         // Labels: frame 5 (owned by the second window) has the car at x = 5..6, the far body
         // at y = 30.
-        let labels =
-            stitched.object_ids(&[vec![], vec![], vec![], vec![], vec![], vec![[5.2, 0.0, 0.0], [5.0, 30.0, 0.0]]]);
+        let labels = stitched
+            .object_ids(&[vec![], vec![], vec![], vec![], vec![], vec![[5.2, 0.0, 0.0], [5.0, 30.0, 0.0]]])
+            .unwrap();
         assert_eq!(labels[5], vec![0, 1]);
         // A point on the car at frame 0 follows it to frame 5, through the hand-over at frame 3.
         let at = stitched.positions(&[[0.2, 0.1, 0.0]], 0.0, &[2.5, 3.0, 5.0]).unwrap();
@@ -712,7 +881,7 @@ mod tests {
         // the second window's members of frame 3 but carries the car's object with it.
         let mut seen_once = stitched.clone();
         if let Motion::Windows(windows) = &mut seen_once.motion {
-            windows[0].model.bodies[0].members[0].push([0.0, 3.0, 0.0]);
+            windows[0].model_mut().bodies[0].members[0].push([0.0, 3.0, 0.0]);
         }
         let at = seen_once.positions(&[[0.1, 3.0, 0.0]], 0.0, &[3.0, 5.0]).unwrap();
         for (got, want) in at.iter().zip([[3.1, 3.0, 0.0], [5.1, 3.0, 0.0]]) {
@@ -738,9 +907,176 @@ mod tests {
         // A window holding a NaN is refused at save time, naming the window.
         let mut poisoned = stitched.clone();
         if let Motion::Windows(windows) = &mut poisoned.motion {
-            windows[1].model.bodies[0].poses[3].translation[0] = f64::NAN;
+            windows[1].model_mut().bodies[0].poses[3].translation[0] = f64::NAN;
         }
         let e = poisoned.to_bytes().unwrap_err().to_string();
         assert!(e.contains("window 1 (from frame 2): moving body 0, pose at frame 3"), "{e}");
+    }
+
+    /// An 8-frame log with identity poses stitched from three 4-frame windows starting at frames
+    /// 0, 2 and 4 (hand-overs at frames 3 and 5): scene_model()'s car in each, where it is in
+    /// the log (1 m per frame along x), so that the three parts are one object.
+    fn three_windows() -> FittedModel {
+        let car_from = |start: usize| {
+            let mut model = scene_model();
+            let shift = Rigid { translation: [start as f64, 0.0, 0.0], ..Rigid::identity() };
+            let car = &mut model.bodies[0];
+            car.poses = car.poses.iter().map(|p| shift.compose(p)).collect();
+            car.members = car.members.iter().map(|m| m.iter().map(|p| shift.apply(p)).collect()).collect();
+            (start, model)
+        };
+        FittedModel::stitched(
+            Method::Mbnt,
+            TimeAxis::new(None, 8),
+            Some(vec![Rigid::identity(); 8]),
+            FitReport::default(),
+            vec![car_from(0), car_from(2), car_from(4)],
+        )
+        .unwrap()
+    }
+
+    /// Whether two arrays of points are the same bit for bit.
+    fn same_bits(a: &[Point], b: &[Point]) -> bool {
+        a.len() == b.len() && a.iter().flatten().zip(b.iter().flatten()).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
+    #[test]
+    fn a_loaded_stitched_model_decodes_only_the_windows_its_queries_need_and_answers_as_built() {
+        let built = three_windows();
+        assert_eq!(built.decoded_windows(), 3, "a fit's windows are decoded from the start");
+        assert_eq!(built.bodies().len(), 1, "the car is one object over the three windows");
+        let bytes = built.to_bytes().unwrap();
+        let loaded = FittedModel::from_bytes(&bytes).unwrap();
+        // Loading reads the header only: the log's objects, poses, report and windows' ids.
+        assert_eq!(loaded.decoded_windows(), 0);
+        assert_eq!(loaded.bodies(), built.bodies());
+        assert_eq!(loaded.report(), built.report());
+        assert_eq!(loaded.window_object_ids(), built.window_object_ids());
+        assert_eq!(loaded.window_starts(), vec![0, 2, 4]);
+        assert_eq!(loaded.decoded_windows(), 0);
+        // Written back undecoded, the file is the same bytes.
+        assert_eq!(loaded.to_bytes().unwrap(), bytes);
+        // A query within the first window's time decodes that window only.
+        let points = [[0.2, 0.1, 0.0], [10.0, 10.0, 0.0], [20.1, 0.0, 0.0]];
+        let near = loaded.positions(&points, 0.0, &[1.0, 2.5]).unwrap();
+        assert!(same_bits(&near, &built.positions(&points, 0.0, &[1.0, 2.5]).unwrap()));
+        assert_eq!(loaded.decoded_windows(), 1);
+        // Past the first hand-over (frame 3), the chain reaches the second window.
+        let next = loaded.positions(&points, 0.0, &[3.5]).unwrap();
+        assert!(same_bits(&next, &built.positions(&points, 0.0, &[3.5]).unwrap()));
+        assert_eq!(loaded.decoded_windows(), 2);
+        // Bit-identical answers at every time across both hand-overs, from every window.
+        let times = [0.0, 1.0, 2.5, 3.0, 4.0, 4.5, 5.0, 6.0, 7.0];
+        for t_obs in [0.0, 3.0, 5.5, 7.0] {
+            let (a, b) =
+                (loaded.positions(&points, t_obs, &times).unwrap(), built.positions(&points, t_obs, &times).unwrap());
+            assert!(same_bits(&a, &b), "observed at {t_obs}: {a:?} vs {b:?}");
+        }
+        assert_eq!(loaded.decoded_windows(), 3);
+        // A partly or wholly decoded model is still written back as it was read.
+        assert_eq!(loaded.to_bytes().unwrap(), bytes);
+        // Labels: frame 6 is the last window's; a fresh load decodes that window alone.
+        let fresh = FittedModel::from_bytes(&bytes).unwrap();
+        let on_car = vec![[6.2, 0.0, 0.0], [30.0, 0.0, 0.0]];
+        assert_eq!(fresh.frame_object_ids(6, &on_car).unwrap(), vec![0, -1]);
+        assert_eq!(fresh.decoded_windows(), 1);
+        let frames: Vec<Vec<Point>> =
+            (0..8).map(|k| vec![[k as f32 + 0.2, 0.1, 0.0], [10.0, 10.0, 0.0], [20.1, 0.0, 0.0]]).collect();
+        assert_eq!(fresh.object_ids(&frames).unwrap(), built.object_ids(&frames).unwrap());
+        let (flow_loaded, flow_built) = (fresh.scene_flow(&frames).unwrap(), built.scene_flow(&frames).unwrap());
+        assert!(flow_loaded.iter().zip(&flow_built).all(|(a, b)| same_bits(a, b)));
+        assert!((flow_built[5][0][0] - 1.0).abs() < 1e-4, "the car moves 1 m per frame: {:?}", flow_built[5]);
+        // Every window, and the network-alone model, as the built ones.
+        let windows = fresh.windows().unwrap();
+        assert_eq!(
+            windows.iter().map(|(s, m)| (*s, m.bodies().len())).collect::<Vec<_>>(),
+            vec![(0, 1), (2, 1), (4, 1)]
+        );
+        assert_eq!(fresh.window_link_shares().unwrap(), built.window_link_shares().unwrap());
+        let alone = |m: &FittedModel| m.without_tracks().unwrap().positions(&points, 0.0, &times).unwrap();
+        assert!(same_bits(&alone(&fresh), &alone(&built)));
+    }
+
+    /// The bytes of `model`'s file with `change` applied to window `w`'s own file (version 1).
+    fn with_window_changed(bytes: &[u8], w: usize, change: impl FnOnce(&mut [u8])) -> Vec<u8> {
+        let mut out = bytes.to_vec();
+        let at = (8..bytes.len() - 8).filter(|&i| &bytes[i..i + 8] == b"MBNTMDL1").nth(w).unwrap();
+        let len = u64::from_le_bytes(bytes[at - 8..at].try_into().unwrap()) as usize;
+        change(&mut out[at..at + len]);
+        out
+    }
+
+    #[test]
+    fn a_damaged_window_loads_and_is_refused_with_its_index_when_a_query_first_needs_it() {
+        let built = three_windows();
+        let bytes = built.to_bytes().unwrap();
+        // Window 1's own header made unreadable JSON.
+        let damaged = with_window_changed(&bytes, 1, |window| window[16] = b'#');
+        let loaded = FittedModel::from_bytes(&damaged).unwrap();
+        assert_eq!(loaded.decoded_windows(), 0);
+        // Queries within window 0 answer; one reaching window 1 is refused, every time it is asked.
+        let points = [[0.2, 0.1, 0.0]];
+        assert_eq!(loaded.positions(&points, 0.0, &[2.0]).unwrap(), built.positions(&points, 0.0, &[2.0]).unwrap());
+        for _ in 0..2 {
+            let e = loaded.positions(&points, 0.0, &[4.0]).unwrap_err();
+            assert!(
+                matches!(&e, QueryError::CorruptWindow { window: 1, detail } if detail.contains("corrupt model header")),
+                "{e}"
+            );
+        }
+        assert!(matches!(loaded.frame_object_ids(4, &points), Err(QueryError::CorruptWindow { window: 1, .. })));
+        assert!(loaded.frame_scene_flow(3, &points).is_err());
+        assert!(loaded.windows().is_err() && loaded.without_tracks().is_err());
+        assert!(loaded.to_bytes().unwrap() == damaged, "written back as read");
+        // Window 2's network damaged (its last bytes, the network's checksum): refused when a
+        // query at the last window's time decodes it.
+        let flipped = with_window_changed(&bytes, 2, |window| {
+            let end = window.len();
+            window[end - 4..].copy_from_slice(&[0xff; 4]);
+        });
+        let loaded = FittedModel::from_bytes(&flipped).unwrap();
+        let e = loaded.positions(&points, 7.0, &[7.0]).unwrap_err();
+        assert!(
+            matches!(&e, QueryError::CorruptWindow { window: 2, detail } if detail.contains("corrupt network")),
+            "{e}"
+        );
+        // A window whose own times are not its slice of the log: refused when decoded.
+        let mut shifted = three_windows();
+        if let Motion::Windows(windows) = &mut shifted.motion {
+            windows[1].model_mut().time_axis = TimeAxis::new(Some(vec![0.0, 1.0, 2.0, 3.0]), 4);
+        }
+        let loaded = FittedModel::from_bytes(&shifted.to_bytes().unwrap()).unwrap();
+        let e = loaded.positions(&points, 3.0, &[3.0]).unwrap_err();
+        assert!(e.to_string().contains("window 1 of the stitched model cannot be read: the window's times"), "{e}");
+        // A window whose length prefix runs past the end of the file is refused at load.
+        let mut truncated = bytes.clone();
+        truncated.truncate(bytes.len() - 3);
+        assert!(FittedModel::from_bytes(&truncated).unwrap_err().contains("truncated inside a window"));
+    }
+
+    #[test]
+    fn a_stitched_model_file_without_the_windows_frames_in_its_header_still_loads() {
+        // Files written before windows loaded lazily name each window's start and objects only.
+        let built = three_windows();
+        let bytes = built.to_bytes().unwrap();
+        let len = u64::from_le_bytes(bytes[8..16].try_into().unwrap()) as usize;
+        let mut header: serde_json::Value = serde_json::from_slice(&bytes[16..16 + len]).unwrap();
+        for window in header["windows"].as_array_mut().unwrap() {
+            window.as_object_mut().unwrap().remove("frames").expect("the current header has the field");
+        }
+        let old_header = serde_json::to_vec(&header).unwrap();
+        let mut old = b"MBNTMDL2".to_vec();
+        old.extend((old_header.len() as u64).to_le_bytes());
+        old.extend(old_header);
+        old.extend(&bytes[16 + len..]);
+        let loaded = FittedModel::from_bytes(&old).unwrap();
+        assert_eq!(loaded.decoded_windows(), 0);
+        let times = [0.0, 3.0, 4.5, 7.0];
+        let points = [[0.2, 0.1, 0.0]];
+        assert!(same_bits(
+            &loaded.positions(&points, 0.0, &times).unwrap(),
+            &built.positions(&points, 0.0, &times).unwrap()
+        ));
+        assert_eq!(loaded.to_bytes().unwrap(), bytes, "written back with the frames");
     }
 }
