@@ -26,6 +26,7 @@ use crate::geometry::Point;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
 use crate::model::{FitReport, FittedModel, TimeAxis};
+use crate::odometry::ReadOrOdometryError;
 
 /// A sequence to fit: T frames of points, each in its own sensor frame, and its time axis.
 #[derive(Debug, Clone)]
@@ -61,11 +62,16 @@ pub trait FrameSource {
     fn in_memory(&self) -> Option<&Sequence> {
         None
     }
-    /// Every frame: [`FrameSource::read_frames`] of them all, borrowed when they are in memory.
-    fn all_frames(&self) -> Result<std::borrow::Cow<'_, [Vec<Point>]>, FitError> {
-        match self.in_memory() {
-            Some(sequence) => Ok(std::borrow::Cow::Borrowed(&sequence.frames)),
-            None => self.read_frames(0..self.frame_count()).map(std::borrow::Cow::Owned),
+    /// Frame `frame` (`< frame_count()`) alone: [`FrameSource::read_frames`] of it, borrowed
+    /// when the frames are in memory. The odometry reads a log this way, one frame at a time.
+    fn read_frame(&self, frame: usize) -> Result<std::borrow::Cow<'_, [Point]>, FitError> {
+        if let Some(sequence) = self.in_memory() {
+            return Ok(std::borrow::Cow::Borrowed(&sequence.frames[frame]));
+        }
+        let mut read = self.read_frames(frame..frame + 1)?;
+        match read.len() {
+            1 => Ok(std::borrow::Cow::Owned(read.swap_remove(0))),
+            n => Err(FitError::FrameRead(format!("frame {frame}: the source gave {n} frames for one"))),
         }
     }
     /// Frames `range` with their timestamps and poses, as a sequence of their own.
@@ -411,7 +417,7 @@ pub struct FitCoordinates {
 /// range) is fitted in sensor coordinates, as without odometry, with a warning; in `on` mode
 /// that is an error.
 ///
-/// Only the odometry reads the frames: with poses, none is read.
+/// Only the odometry reads the frames, one at a time and each once: with poses, none is read.
 pub fn fit_coordinates(sequence: &dyn FrameSource, params: &ValidFitParams) -> Result<FitCoordinates, FitError> {
     if !params.use_poses {
         return Ok(FitCoordinates::default());
@@ -419,18 +425,25 @@ pub fn fit_coordinates(sequence: &dyn FrameSource, params: &ValidFitParams) -> R
     let estimate = match (params.odometry, sequence.poses()) {
         (OdometryMode::On, _) | (OdometryMode::Auto, None) => {
             let odometry_params = crate::odometry::OdometryParams::default();
-            match crate::odometry::estimate_poses(
-                &sequence.all_frames()?,
+            // One frame at a time: the odometry keeps only downsampled clouds, so a long log
+            // read from a store need not be held in memory whole.
+            match crate::odometry::estimate_poses_from(
+                sequence.frame_count(),
+                &mut |k| sequence.read_frame(k),
                 sequence.timestamps_s(),
                 &odometry_params,
                 &mut |_, _| ControlFlow::Continue(()),
             ) {
                 Ok(odometry) => Some(odometry.row_major()),
-                Err(e) if params.odometry == OdometryMode::Auto => {
+                // The log could not be read: not a sequence the odometry failed on.
+                Err(ReadOrOdometryError::Read { error, .. }) => return Err(error),
+                Err(ReadOrOdometryError::Odometry(e)) if params.odometry == OdometryMode::Auto => {
                     tracing::warn!("odometry failed ({e}); fitting each frame in its own sensor coordinates");
                     None
                 }
-                Err(e) => return Err(FitError::InvalidSequence(format!("odometry: {e}"))),
+                Err(ReadOrOdometryError::Odometry(e)) => {
+                    return Err(FitError::InvalidSequence(format!("odometry: {e}")));
+                }
             }
         }
         _ => None,

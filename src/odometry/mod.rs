@@ -28,6 +28,7 @@ pub mod voxel;
 #[cfg(test)]
 mod tests;
 
+use std::borrow::Cow;
 use std::ops::ControlFlow;
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -256,37 +257,80 @@ pub fn from_row_major(m: &[f64]) -> Option<Isometry3<f64>> {
 /// `timestamps_s` (one per frame, strictly increasing) scale the constant-velocity prediction
 /// when the frame rate varies; without them frames are taken as evenly spaced.
 ///
-/// Blocking and CPU-bound (rayon inside): a few hundred ms per 120k-point frame.
+/// Blocking and CPU-bound (rayon inside): a few hundred ms per 120k-point frame. For frames
+/// held in memory already; [`estimate_poses_from`] reads them one at a time (same poses, bit
+/// for bit).
 pub fn estimate_poses(
     frames: &[Vec<Point>],
     timestamps_s: Option<&[f64]>,
     params: &OdometryParams,
     on_progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<Odometry, OdometryError> {
+    let mut borrow = |k: usize| Ok::<_, std::convert::Infallible>(Cow::Borrowed(frames[k].as_slice()));
+    estimate_poses_from(frames.len(), &mut borrow, timestamps_s, params, on_progress).map_err(|e| match e {
+        ReadOrOdometryError::Read { error, .. } => match error {},
+        ReadOrOdometryError::Odometry(e) => e,
+    })
+}
+
+/// Why [`estimate_poses_from`] returned no poses: a frame could not be read, or the odometry
+/// failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadOrOdometryError<E> {
+    /// The reader's error for frame `frame`.
+    #[error("frame {frame} could not be read: {error}")]
+    Read {
+        /// The frame's index.
+        frame: usize,
+        /// What the reader said.
+        error: E,
+    },
+    /// The odometry's own error.
+    #[error(transparent)]
+    Odometry(#[from] OdometryError),
+}
+
+/// [`estimate_poses`] of `frame_count` frames read one at a time by `read_frame(k)`, each once
+/// and in order (0, 1, ...): only the current frame is held in full, besides the downsampled
+/// clouds the refinement keeps, so a long log need not be in memory. A frame's points are
+/// checked when it is read (errors as [`estimate_poses`]'s); the frame count and the
+/// timestamps before any is read.
+pub fn estimate_poses_from<'a, E>(
+    frame_count: usize,
+    read_frame: &mut dyn FnMut(usize) -> Result<Cow<'a, [Point]>, E>,
+    timestamps_s: Option<&[f64]>,
+    params: &OdometryParams,
+    on_progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+) -> Result<Odometry, ReadOrOdometryError<E>> {
     params.check()?;
-    validate(frames, timestamps_s)?;
+    validate_log(frame_count, timestamps_s)?;
     let mut map = VoxelMap::new(params.voxel_m, params.max_points_per_voxel);
     let mut threshold = AdaptiveThreshold::new(
         params.initial_threshold_m,
         params.min_prediction_error_m,
         f64::from(params.max_range_m),
     );
-    let mut poses: Vec<Isometry3<f64>> = Vec::with_capacity(frames.len());
-    let mut diagnostics = Vec::with_capacity(frames.len());
+    let mut poses: Vec<Isometry3<f64>> = Vec::with_capacity(frame_count);
+    let mut diagnostics = Vec::with_capacity(frame_count);
     // The last frame-to-frame motion (in the previous sensor's coordinates) and its time step.
     let mut last_motion = Isometry3::<f64>::identity();
     let mut last_dt_s = 1.0;
     // Each frame as the map takes it and as it is registered, for the refinement.
-    let mut map_clouds: Vec<Vec<Point>> = Vec::with_capacity(frames.len());
-    let mut sources: Vec<Vec<Point>> = Vec::with_capacity(frames.len());
-    for (k, frame) in frames.iter().enumerate() {
-        let cropped = crop(frame, params);
+    let mut map_clouds: Vec<Vec<Point>> = Vec::with_capacity(frame_count);
+    let mut sources: Vec<Vec<Point>> = Vec::with_capacity(frame_count);
+    for k in 0..frame_count {
+        let frame = read_frame(k).map_err(|error| ReadOrOdometryError::Read { frame: k, error })?;
+        check_points(k, &frame)?;
+        let cropped = crop(&frame, params);
+        // The full frame is not needed past this point: drop it before the next is read.
+        drop(frame);
         if cropped.is_empty() {
             return Err(OdometryError::EmptyFrame {
                 frame: k,
                 min_range_m: params.min_range_m,
                 max_range_m: params.max_range_m,
-            });
+            }
+            .into());
         }
         let for_map = voxel_downsample(&cropped, 0.5 * params.voxel_m);
         if k == 0 {
@@ -304,8 +348,8 @@ pub fn estimate_poses(
                 prediction_error_m: 0.0,
                 map_points: map.len(),
             });
-            if on_progress(1, frames.len()).is_break() {
-                return Err(OdometryError::Cancelled { frames_done: 1 });
+            if on_progress(1, frame_count).is_break() {
+                return Err(OdometryError::Cancelled { frames_done: 1 }.into());
             }
             continue;
         }
@@ -361,8 +405,8 @@ pub fn estimate_poses(
         sources.push(source);
         last_motion = motion;
         last_dt_s = dt_s;
-        if on_progress(k + 1, frames.len()).is_break() {
-            return Err(OdometryError::Cancelled { frames_done: k + 1 });
+        if on_progress(k + 1, frame_count).is_break() {
+            return Err(OdometryError::Cancelled { frames_done: k + 1 }.into());
         }
     }
     if params.refine_window_frames > 0 {
@@ -435,22 +479,26 @@ fn scale_motion(motion: &Isometry3<f64>, ratio: f64) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::from(translation), rotation)
 }
 
-fn validate(frames: &[Vec<Point>], timestamps_s: Option<&[f64]>) -> Result<(), OdometryError> {
-    if frames.len() < 2 {
-        return Err(OdometryError::TooFewFrames { frames: frames.len() });
-    }
-    for (frame, points) in frames.iter().enumerate() {
-        if let Some(index) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
-            return Err(OdometryError::NonFinitePoint { frame, index });
-        }
+/// What can be checked before any frame is read: the frame count and the timestamps.
+fn validate_log(frame_count: usize, timestamps_s: Option<&[f64]>) -> Result<(), OdometryError> {
+    if frame_count < 2 {
+        return Err(OdometryError::TooFewFrames { frames: frame_count });
     }
     if let Some(ts) = timestamps_s {
-        if ts.len() != frames.len() {
-            return Err(OdometryError::BadTimestamps(format!("{} timestamps for {} frames", ts.len(), frames.len())));
+        if ts.len() != frame_count {
+            return Err(OdometryError::BadTimestamps(format!("{} timestamps for {frame_count} frames", ts.len())));
         }
         if ts.iter().any(|t| !t.is_finite()) || ts.windows(2).any(|w| w[1] <= w[0]) {
             return Err(OdometryError::BadTimestamps("must be finite and strictly increasing".into()));
         }
     }
     Ok(())
+}
+
+/// Frame `frame`'s points, checked as it is read: all finite.
+fn check_points(frame: usize, points: &[Point]) -> Result<(), OdometryError> {
+    match points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
+        Some(index) => Err(OdometryError::NonFinitePoint { frame, index }),
+        None => Ok(()),
+    }
 }

@@ -368,6 +368,75 @@ fn bad_input_gives_a_clear_error() {
     assert_eq!((e, calls), (OdometryError::Cancelled { frames_done: 1 }, 1));
 }
 
+/// Frames read one at a time, each an owned copy as a store would give it: the same poses and
+/// diagnostics, bit for bit, as from the frames in memory.
+#[test]
+fn frames_read_one_at_a_time_give_the_same_bits_as_frames_in_memory() {
+    let sim = crate::sim::simulate(&crate::sim::SimParams { seed: 3, frames: 8, ..Default::default() }).unwrap();
+    let p = OdometryParams::default();
+    let none = &mut |_: usize, _: usize| ControlFlow::Continue(());
+    let in_memory = estimate_poses(&sim.frames, Some(&sim.timestamps_s), &p, none).unwrap();
+    let mut read = |k: usize| Ok::<_, String>(Cow::Owned(sim.frames[k].clone()));
+    let one_at_a_time = estimate_poses_from(sim.frames.len(), &mut read, Some(&sim.timestamps_s), &p, none).unwrap();
+    assert_eq!(one_at_a_time.row_major(), in_memory.row_major());
+    assert_eq!(one_at_a_time.frames, in_memory.frames);
+    // Not trivially equal: the sensor moved.
+    assert!(in_memory.world_from_sensor[7].translation.vector.norm() > 1.0);
+}
+
+#[test]
+fn the_reader_is_called_once_per_frame_in_order_and_a_bad_frame_stops_it_with_the_same_error() {
+    let none = &mut |_: usize, _: usize| ControlFlow::Continue(());
+    let p = OdometryParams { refine_window_frames: 1, ..OdometryParams::default() };
+    let t = times(4);
+    let truth = drive(&t, -2.0, |_| 10.0, |_| 0.0);
+    let (frames, _) = sweeps(&truth, &street(7), |_| Vec::new(), 5);
+    let calls = std::cell::RefCell::new(Vec::new());
+    let reader = |frames: &[Vec<Point>]| {
+        let calls = &calls;
+        let frames = frames.to_vec();
+        move |k: usize| {
+            calls.borrow_mut().push(k);
+            Ok::<_, String>(Cow::Owned(frames[k].clone()))
+        }
+    };
+    let mut read = reader(&frames);
+    estimate_poses_from(4, &mut read, Some(&t), &p, none).unwrap();
+    assert_eq!(*calls.borrow(), vec![0, 1, 2, 3]);
+    // A frame with nothing in range, then one with a NaN, read third: the errors of the frames in
+    // memory, and nothing read after the bad frame.
+    let mut empty = frames.clone();
+    empty[2] = vec![[0.5, 0.0, 0.0]];
+    let mut nan = frames.clone();
+    nan[2][11][1] = f32::NAN;
+    let empty_error = OdometryError::EmptyFrame { frame: 2, min_range_m: p.min_range_m, max_range_m: p.max_range_m };
+    for (bad, expected) in [(empty, empty_error), (nan, OdometryError::NonFinitePoint { frame: 2, index: 11 })] {
+        assert_eq!(estimate_poses(&bad, Some(&t), &p, none).unwrap_err(), expected);
+        calls.borrow_mut().clear();
+        let mut read = reader(&bad);
+        let e = estimate_poses_from(4, &mut read, Some(&t), &p, none).unwrap_err();
+        assert!(matches!(&e, ReadOrOdometryError::Odometry(e) if *e == expected), "{e:?}, expected {expected:?}");
+        assert_eq!(e.to_string(), expected.to_string());
+        assert_eq!(*calls.borrow(), vec![0, 1, 2]);
+    }
+    // The reader's own error names the frame and stops the reading there.
+    calls.borrow_mut().clear();
+    let mut failing = |k: usize| {
+        calls.borrow_mut().push(k);
+        if k == 1 { Err("disk gone".to_string()) } else { Ok(Cow::Owned(frames[k].clone())) }
+    };
+    let e = estimate_poses_from(4, &mut failing, Some(&t), &p, none).unwrap_err();
+    assert!(matches!(&e, ReadOrOdometryError::Read { frame: 1, error } if error == "disk gone"), "{e:?}");
+    assert_eq!(e.to_string(), "frame 1 could not be read: disk gone");
+    assert_eq!(*calls.borrow(), vec![0, 1]);
+    // The count and the timestamps are checked before any frame is read.
+    calls.borrow_mut().clear();
+    let mut read = reader(&frames);
+    let e = estimate_poses_from(4, &mut read, Some(&t[..3]), &p, none).unwrap_err();
+    assert!(matches!(e, ReadOrOdometryError::Odometry(OdometryError::BadTimestamps(_))), "{e:?}");
+    assert!(calls.borrow().is_empty());
+}
+
 #[test]
 fn row_major_matrices_round_trip_and_non_rotations_are_refused() {
     let pose = Isometry3::new(Vector3::new(1.0, -2.0, 0.5), Vector3::new(0.1, -0.2, 0.3));
