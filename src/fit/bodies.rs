@@ -544,17 +544,16 @@ fn track_body(
     // with the sensor) is neither.
     let size: [f32; 3] = std::array::from_fn(|i| extent_max_m[i] - extent_min_m[i]);
     let plausible = size[1] <= MAX_WIDTH_M && (MIN_HEIGHT_M..=MAX_HEIGHT_M).contains(&size[2]);
-    // Evidence from outside the body's own registrations: where the body is said to have left
-    // its seed's place for good, the sensor must no longer find the seed's points there. A
-    // parked car or a wall the registrations slid along is still seen in its place.
-    let left_its_place = rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
     let moving = plausible
-        && left_its_place
         && seen >= need_seen
         && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
         && 2 * clear >= tested
         && 2 * clear_points >= tested_points
-        && travel_m >= min_travel_m;
+        && travel_m >= min_travel_m
+        // Evidence from outside the body's own registrations, last as it costs the most: the
+        // sensor must no longer find the seed's points in the place the body is said to have
+        // left. A parked car or a wall the registrations slid along is still seen there.
+        && rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
     Tracked { body, clusters: clusters_on_body, moving }
 }
 
@@ -674,11 +673,16 @@ fn place_still_occupied(
             if !is_away && covered {
                 continue;
             }
-            let tallies = [is_away.then_some(&mut away), (!covered).then_some(&mut vacated)];
-            match rays[j].sight(p, RAY_MARGIN_M) {
-                Sight::Seen => tallies.into_iter().flatten().for_each(|t| t.0 += 1),
-                Sight::Passed => tallies.into_iter().flatten().for_each(|t| t.1 += 1),
-                Sight::Hidden | Sight::Unknown => {}
+            let (seen, passed) = match rays[j].sight(p, RAY_MARGIN_M) {
+                Sight::Seen => (1, 0),
+                Sight::Passed => (0, 1),
+                Sight::Hidden | Sight::Unknown => continue,
+            };
+            if is_away {
+                away = (away.0 + seen, away.1 + passed);
+            }
+            if !covered {
+                vacated = (vacated.0 + seen, vacated.1 + passed);
             }
         }
     }
