@@ -73,12 +73,12 @@ fn main() -> anyhow::Result<()> {
         query_s * 1e3,
         model.decoded_windows(),
     );
-    // What every window decoded adds (resident memory; the model's file bytes stay).
+    // What every window decoded adds (resident memory; the file's bytes are freed once every window is decoded).
     model.windows()?;
     let rss_all_decoded_mib = rss_mib();
     let file_mib = std::fs::metadata(path)?.len() as f64 / (1024.0 * 1024.0);
     println!(
-        "{mode}: resident {rss_loaded_mib:.1} MiB once loaded ({file_mib:.1} MiB file kept), \
+        "{mode}: resident {rss_loaded_mib:.1} MiB once loaded ({file_mib:.1} MiB file), \
          {rss_all_decoded_mib:.1} MiB with every window decoded"
     );
     Ok(())

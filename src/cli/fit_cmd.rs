@@ -9,9 +9,7 @@ use super::frames::{FileFrames, peak_rss_bytes};
 use super::progress;
 use crate::fit::windows::{NoFinishedWindows, fit_log};
 use crate::fit::{FitParams, FrameSource, Method, Mode, ValidFitParams};
-use crate::geometry::Point;
 use crate::io::npz::NpzWriter;
-use crate::io::read_points_file;
 use crate::model::FittedModel;
 
 /// Arguments of `mbnt fit`.
@@ -105,18 +103,6 @@ pub fn read_timestamps(path: &Path) -> anyhow::Result<Vec<f64>> {
     text.split_whitespace()
         .map(|w| w.parse::<f64>().with_context(|| format!("bad timestamp {w:?} in {}", path.display())))
         .collect()
-}
-
-/// Reads frame files in order, showing a bar (for commands that need every frame at once).
-pub fn read_frames(paths: &[PathBuf]) -> anyhow::Result<Vec<Vec<Point>>> {
-    let bar = progress::bar(paths.len(), "reading frames");
-    let mut frames = Vec::with_capacity(paths.len());
-    for path in paths {
-        frames.push(read_points_file(path).with_context(|| format!("reading frame {}", path.display()))?);
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    Ok(frames)
 }
 
 /// Fits `sequence` (of `points` points in all) as one job, showing a bar, and prints the plan

@@ -9,8 +9,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use nalgebra::Isometry3;
 
-use super::fit_cmd::{frame_paths, read_frames, read_timestamps};
-use crate::odometry::{OdometryParams, estimate_poses, from_row_major, to_row_major};
+use super::fit_cmd::{frame_paths, read_timestamps};
+use super::frames::FileFrames;
+use crate::odometry::{OdometryParams, ReadOrOdometryError, estimate_poses_from, from_row_major, to_row_major};
 
 /// Arguments of `mbnt odometry`.
 #[derive(Debug, clap::Args)]
@@ -40,12 +41,14 @@ pub struct OdometryArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Runs `mbnt odometry`.
+/// Runs `mbnt odometry`. The frames are read one at a time as the odometry reaches them (it keeps
+/// only their downsampled clouds), so a long log never sits in memory whole.
 pub fn run(args: OdometryArgs) -> anyhow::Result<()> {
     let paths = frame_paths(&args.frames)?;
-    let frames = read_frames(&paths)?;
+    let frame_count = paths.len();
     let timestamps_s = args.timestamps.as_deref().map(read_timestamps).transpose()?;
-    let truth = args.ground_truth.as_deref().map(|p| read_poses(p, frames.len())).transpose()?;
+    let truth = args.ground_truth.as_deref().map(|p| read_poses(p, frame_count)).transpose()?;
+    let files = FileFrames::new(paths, None, None)?;
     let params = OdometryParams {
         voxel_m: args.voxel_m,
         max_range_m: args.max_range_m,
@@ -53,7 +56,24 @@ pub fn run(args: OdometryArgs) -> anyhow::Result<()> {
         ..OdometryParams::default()
     };
     let started = std::time::Instant::now();
-    let estimate = estimate_poses(&frames, timestamps_s.as_deref(), &params, &mut |_, _| ControlFlow::Continue(()))?;
+    let mut points_read = 0usize;
+    let bar = super::progress::bar(frame_count, "odometry");
+    let mut read_frame = |k: usize| {
+        let frame = files.frame(k)?;
+        points_read += frame.len();
+        Ok::<_, anyhow::Error>(frame.into())
+    };
+    let estimate =
+        estimate_poses_from(frame_count, &mut read_frame, timestamps_s.as_deref(), &params, &mut |done, _| {
+            bar.set_position(done as u64);
+            ControlFlow::Continue(())
+        })
+        .map_err(|e| match e {
+            // The reader's error already names the file.
+            ReadOrOdometryError::Read { error, .. } => error,
+            ReadOrOdometryError::Odometry(e) => e.into(),
+        })?;
+    bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
     let mut text = String::new();
     for pose in &estimate.world_from_sensor {
@@ -66,17 +86,13 @@ pub fn run(args: OdometryArgs) -> anyhow::Result<()> {
         Some(path) => std::fs::write(path, &text).with_context(|| format!("writing {}", path.display()))?,
         None => std::io::stdout().lock().write_all(text.as_bytes())?,
     }
-    eprintln!(
-        "odometry of {} frames ({} points) in {seconds:.2} s",
-        frames.len(),
-        frames.iter().map(Vec::len).sum::<usize>()
-    );
+    eprintln!("odometry of {frame_count} frames ({points_read} points) in {seconds:.2} s");
     if let Some(truth) = truth {
         let e = pose_errors(&estimate.world_from_sensor, &truth);
         eprintln!(
             "against the ground truth after {} frames: translation {:.3} m = {:.3} % of {:.2} m travelled, \
              rotation {:.4} deg (heading {:.4} deg)",
-            frames.len() - 1,
+            frame_count - 1,
             e.translation_m,
             100.0 * e.translation_m / e.travelled_m,
             e.travelled_m,
@@ -137,4 +153,71 @@ pub fn read_poses(path: &Path, frames: usize) -> anyhow::Result<Vec<Isometry3<f6
     }
     poses.truncate(frames);
     Ok(poses)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Point;
+    use crate::odometry::estimate_poses;
+    use crate::sim::{SimParams, simulate};
+
+    fn write_bin(path: &Path, points: &[Point]) {
+        let bytes: Vec<u8> = points.iter().flat_map(|p| [p[0], p[1], p[2], 0.0]).flat_map(f32::to_le_bytes).collect();
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    fn args(frames: Vec<PathBuf>, timestamps: PathBuf, out: PathBuf) -> OdometryArgs {
+        let defaults = OdometryParams::default();
+        OdometryArgs {
+            frames,
+            timestamps: Some(timestamps),
+            ground_truth: None,
+            voxel_m: defaults.voxel_m,
+            max_range_m: defaults.max_range_m,
+            min_range_m: defaults.min_range_m,
+            out: Some(out),
+        }
+    }
+
+    /// The command reads its files one at a time; what it prints must be what the odometry gives
+    /// for the same frames held in memory, to the printed digit, and a file that does not read
+    /// stops it with the file's name.
+    #[test]
+    fn the_command_prints_the_poses_of_the_frames_in_memory_and_names_a_file_that_does_not_read() {
+        let sim = simulate(&SimParams::log(3, 4)).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let paths: Vec<PathBuf> = (0..sim.frames.len()).map(|k| dir.path().join(format!("{k:06}.bin"))).collect();
+        for (path, frame) in paths.iter().zip(&sim.frames) {
+            write_bin(path, frame);
+        }
+        let times = dir.path().join("times.txt");
+        let text: Vec<String> = sim.timestamps_s.iter().map(|t| format!("{t}")).collect();
+        std::fs::write(&times, text.join("\n")).unwrap();
+        let out = dir.path().join("poses.txt");
+        run(args(vec![dir.path().to_path_buf()], times.clone(), out.clone())).unwrap();
+        let printed = std::fs::read_to_string(&out).unwrap();
+
+        // The .bin files hold f32 coordinates, as the simulator's frames do: the same points.
+        let in_memory =
+            estimate_poses(&sim.frames, Some(&sim.timestamps_s), &OdometryParams::default(), &mut |_, _| {
+                ControlFlow::Continue(())
+            })
+            .unwrap();
+        let expected: Vec<String> = in_memory
+            .world_from_sensor
+            .iter()
+            .map(|pose| to_row_major(pose)[..12].iter().map(|v| format!("{v:.9e}")).collect::<Vec<_>>().join(" "))
+            .collect();
+        assert_eq!(printed.lines().collect::<Vec<_>>(), expected);
+        // The sequence moves: the poses are not all the identity.
+        assert!(in_memory.world_from_sensor[3].translation.vector.norm() > 1.0);
+
+        // Frame 2 removed after the paths were listed: the error names it.
+        let mut listed = paths.clone();
+        let gone = dir.path().join("gone.bin");
+        listed[2] = gone;
+        let err = run(args(listed, times, out)).unwrap_err();
+        assert!(format!("{err:#}").contains("gone.bin"), "{err:#}");
+    }
 }

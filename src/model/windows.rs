@@ -26,10 +26,11 @@
 //! the frames a window was fitted on are not kept. A stitched model read from a file keeps the
 //! file's bytes and decodes a window the first time a query needs it ([`Window`]), so that
 //! loading a long log's model reads its header only and a query decodes the windows its chain
-//! touches.
+//! touches. A window lets go of the file once decoded: when every window is, the file's bytes
+//! are freed and the model holds its decoded windows only.
 
 use std::ops::Range;
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 use serde::{Deserialize, Serialize};
 
@@ -48,7 +49,7 @@ use crate::model::params::Method;
 /// touches (issue 21). A window that cannot be read is refused at that first use
 /// ([`QueryError::CorruptWindow`]); loading checks only the file's structure (each window's
 /// length and version). A built window ([`Window::decoded`]) is decoded from the start.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub(super) struct Window {
     /// The window's first frame in the log.
     pub(super) start: usize,
@@ -60,8 +61,23 @@ pub(super) struct Window {
     /// The model of the window's frames alone, once decoded (or its decoding error).
     model: OnceLock<Result<FittedModel, QueryError>>,
     /// Where the window's own model file (version 1) lies in the stitched model's file, for a
-    /// window read from one: decoded from there on first use, and written back unchanged.
-    source: Option<WindowBytes>,
+    /// window read from one and not yet decoded (or whose decoding failed): decoded from there on
+    /// first use, and written back unchanged. Taken once the window is decoded, so that the
+    /// file's bytes are freed when no window needs them (its decoded model encodes to the same
+    /// bytes).
+    source: Mutex<Option<WindowBytes>>,
+}
+
+impl Clone for Window {
+    fn clone(&self) -> Self {
+        Self {
+            start: self.start,
+            frames: self.frames,
+            object_ids: self.object_ids.clone(),
+            model: self.model.clone(),
+            source: Mutex::new(self.source_bytes()),
+        }
+    }
 }
 
 /// A window's bytes in the stitched model's file.
@@ -99,7 +115,13 @@ const LINK_MIN_SHARE: f64 = 0.5;
 impl Window {
     /// A window built from its model (a fit's, or a test's): decoded from the start.
     pub(super) fn decoded(start: usize, model: FittedModel, object_ids: Vec<u32>) -> Self {
-        Self { start, frames: model.time_axis.frames(), object_ids, model: OnceLock::from(Ok(model)), source: None }
+        Self {
+            start,
+            frames: model.time_axis.frames(),
+            object_ids,
+            model: OnceLock::from(Ok(model)),
+            source: Mutex::new(None),
+        }
     }
 
     /// A window of a model file, decoded on first use ([`Window::model`]).
@@ -109,8 +131,14 @@ impl Window {
             frames,
             object_ids: header.object_ids,
             model: OnceLock::new(),
-            source: Some(source),
+            source: Mutex::new(Some(source)),
         }
+    }
+
+    /// The window's bytes in its file, while it holds them. A poisoned lock is only a panic
+    /// elsewhere while it was held; the `Option` inside is whole either way.
+    fn source_bytes(&self) -> Option<WindowBytes> {
+        self.source.lock().unwrap_or_else(PoisonError::into_inner).clone()
     }
 
     /// The window's entry in the file's header.
@@ -118,22 +146,24 @@ impl Window {
         WindowHeader { start: self.start, frames: Some(self.frames), object_ids: self.object_ids.clone() }
     }
 
-    /// The window's own model file (version 1): the bytes it was read from, unchanged, or its
-    /// model encoded. A window read from a file is written back as read, decoded or not (a
-    /// corrupt one stays refused at first use when that file is loaded again).
+    /// The window's own model file (version 1): the bytes it was read from, unchanged, while it
+    /// holds them, or its model encoded (a built window, or a read one once decoded: the same
+    /// bytes, since decoding keeps every field and number). A window read from a file is thus
+    /// written back as read, decoded or not (a corrupt one keeps its bytes and stays refused at
+    /// first use when that file is loaded again).
     pub(super) fn encode(&self) -> Vec<u8> {
-        match (&self.source, self.model.get()) {
-            (Some(source), _) => source.file[source.range.clone()].to_vec(),
+        match (self.source_bytes(), self.model.get()) {
+            (Some(source), _) => source.file[source.range].to_vec(),
             (None, Some(Ok(model))) => model.encode(),
-            (None, _) => unreachable!("a window without bytes is built decoded"),
+            (None, _) => unreachable!("a window without bytes is decoded"),
         }
     }
 
-    /// The model of a window built from it (not read from a file), which the window is written
-    /// from.
+    /// The model a window is written from (one built by a fit, or read and decoded), when it
+    /// holds no file bytes.
     pub(super) fn built_model(&self) -> Option<&FittedModel> {
-        match (&self.source, self.model.get()) {
-            (None, Some(Ok(model))) => Some(model),
+        match self.model.get() {
+            Some(Ok(model)) if self.source_bytes().is_none() => Some(model),
             _ => None,
         }
     }
@@ -148,10 +178,16 @@ impl Window {
     /// index, for the error.
     pub(super) fn model(&self, w: usize, log_axis: &TimeAxis, with_poses: bool) -> Result<&FittedModel, QueryError> {
         let decoded = self.model.get_or_init(|| {
-            let source = self.source.as_ref().expect("a window without bytes is built decoded");
-            FittedModel::from_bytes(&source.file[source.range.clone()])
+            let mut source = self.source.lock().unwrap_or_else(PoisonError::into_inner);
+            let bytes = source.as_ref().expect("a window without bytes is decoded");
+            let decoded = FittedModel::from_bytes(&bytes.file[bytes.range.clone()])
                 .and_then(|model| check_window(self, &model, log_axis, with_poses).map(|()| model))
-                .map_err(|detail| QueryError::CorruptWindow { window: w, detail })
+                .map_err(|detail| QueryError::CorruptWindow { window: w, detail });
+            // Decoded, the window needs the file no more: the last window to let go frees it.
+            if decoded.is_ok() {
+                *source = None;
+            }
+            decoded
         });
         decoded.as_ref().map_err(Clone::clone)
     }
@@ -159,7 +195,7 @@ impl Window {
     /// The decoded model, for changing it (tests); the window is then written from the model.
     #[cfg(test)]
     pub(super) fn model_mut(&mut self) -> &mut FittedModel {
-        self.source = None;
+        *self.source.get_mut().unwrap_or_else(PoisonError::into_inner) = None;
         self.model.get_mut().expect("a decoded window").as_mut().expect("a readable window")
     }
 
@@ -949,6 +985,9 @@ mod tests {
         let loaded = FittedModel::from_bytes(&bytes).unwrap();
         // Loading reads the header only: the log's objects, poses, report and windows' ids.
         assert_eq!(loaded.decoded_windows(), 0);
+        // The file's bytes, watched without keeping them alive.
+        let Motion::Windows(windows) = &loaded.motion else { panic!("a stitched model") };
+        let file = Arc::downgrade(&windows[0].source_bytes().expect("an undecoded window holds its bytes").file);
         assert_eq!(loaded.bodies(), built.bodies());
         assert_eq!(loaded.report(), built.report());
         assert_eq!(loaded.window_object_ids(), built.window_object_ids());
@@ -965,6 +1004,10 @@ mod tests {
         let next = loaded.positions(&points, 0.0, &[3.5]).unwrap();
         assert!(same_bits(&next, &built.positions(&points, 0.0, &[3.5]).unwrap()));
         assert_eq!(loaded.decoded_windows(), 2);
+        // Two windows re-encoded from their models, one from its bytes: the file as read, which
+        // the undecoded window still holds.
+        assert_eq!(loaded.to_bytes().unwrap(), bytes);
+        assert!(file.upgrade().is_some());
         // Bit-identical answers at every time across both hand-overs, from every window.
         let times = [0.0, 1.0, 2.5, 3.0, 4.0, 4.5, 5.0, 6.0, 7.0];
         for t_obs in [0.0, 3.0, 5.5, 7.0] {
@@ -973,6 +1016,8 @@ mod tests {
             assert!(same_bits(&a, &b), "observed at {t_obs}: {a:?} vs {b:?}");
         }
         assert_eq!(loaded.decoded_windows(), 3);
+        // Every window decoded, none needs the file: its bytes are freed.
+        assert!(file.upgrade().is_none(), "the file's bytes outlive its decoded windows");
         // A partly or wholly decoded model is still written back as it was read.
         assert_eq!(loaded.to_bytes().unwrap(), bytes);
         // Labels: frame 6 is the last window's; a fresh load decodes that window alone.
