@@ -111,12 +111,12 @@ impl FittedModel {
                     check_network(mlp, || format!("the backward flow of frames {} -> {k}", k + 1))?;
                 }
             }
-            // A window read from a file is written back as read, so only built windows (decoded
-            // from the start) are checked; a read one was checked when its file was written, and
-            // is checked again when it is decoded.
+            // Only windows written from their model are checked (built by a fit, or read and
+            // decoded); a window still holding its file's bytes is written back as read, and is
+            // checked when it is decoded.
             Motion::Windows(windows) => {
                 for (w, window) in windows.iter().enumerate() {
-                    let Some(model) = window.built_model() else { continue };
+                    let Some(model) = window.written_from_model() else { continue };
                     model.check_finite().map_err(|e| NonFiniteModel {
                         part: format!("window {w} (from frame {}): {}", window.start, e.part),
                     })?;

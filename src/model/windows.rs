@@ -161,7 +161,7 @@ impl Window {
 
     /// The model a window is written from (one built by a fit, or read and decoded), when it
     /// holds no file bytes.
-    pub(super) fn built_model(&self) -> Option<&FittedModel> {
+    pub(super) fn written_from_model(&self) -> Option<&FittedModel> {
         match self.model.get() {
             Some(Ok(model)) if self.source_bytes().is_none() => Some(model),
             _ => None,
