@@ -15,12 +15,16 @@
 //!    normal, across a pole, across an edge), since the rings a LiDAR draws on a road or a wall
 //!    move with the sensor and pull point-to-point residuals towards standing still;
 //! 5. the prediction's error feeds the threshold; the map ([`voxel`]) takes the frame at its new
-//!    pose and drops voxels beyond `max_range_m`.
+//!    pose and drops voxels beyond `max_range_m`;
+//! 6. the refinement ([`refine`]) registers each frame again against its neighbours on both
+//!    sides, with denser clouds, as soon as they are placed, and finally re-expresses every pose
+//!    from frame 0's.
 //!
 //! Synchronous and free of I/O. Points stay `f32` until they meet a pose; poses and the normal
 //! equations are `f64` (nalgebra). Deterministic: the same input gives the same bits on any
 //! number of threads.
 
+mod refine;
 mod registration;
 mod threshold;
 pub mod voxel;
@@ -34,6 +38,8 @@ use std::ops::ControlFlow;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 use crate::geometry::Point;
+pub use refine::REFINE_SWEEPS;
+use refine::{RefineFrame, Refinement};
 use registration::{IcpSettings, align_to_map, search_translation};
 use threshold::AdaptiveThreshold;
 use voxel::{VoxelMap, transform_points, voxel_downsample};
@@ -315,9 +321,8 @@ pub fn estimate_poses_from<'a, E>(
     // The last frame-to-frame motion (in the previous sensor's coordinates) and its time step.
     let mut last_motion = Isometry3::<f64>::identity();
     let mut last_dt_s = 1.0;
-    // Each frame as the map takes it and as it is registered, for the refinement.
-    let mut map_clouds: Vec<Vec<Point>> = Vec::with_capacity(frame_count);
-    let mut sources: Vec<Vec<Point>> = Vec::with_capacity(frame_count);
+    // Refines the frames as they come, holding only the clouds its windows still need.
+    let mut refinement = (params.refine_window_frames > 0).then(|| Refinement::new(params.refine_window_frames));
     for k in 0..frame_count {
         let frame = read_frame(k).map_err(|error| ReadOrOdometryError::Read { frame: k, error })?;
         check_points(k, &frame)?;
@@ -335,9 +340,10 @@ pub fn estimate_poses_from<'a, E>(
         let for_map = voxel_downsample(&cropped, 0.5 * params.voxel_m);
         if k == 0 {
             map.add(&for_map);
-            map_clouds.push(for_map);
-            sources.push(Vec::new());
             poses.push(Isometry3::identity());
+            if let Some(refinement) = &mut refinement {
+                refinement.push(RefineFrame::new(&cropped, for_map, params), &mut poses, params);
+            }
             diagnostics.push(FrameDiagnostics {
                 source_points: 0,
                 correspondences: 0,
@@ -401,58 +407,19 @@ pub fn estimate_poses_from<'a, E>(
             map_points: map.len(),
         });
         poses.push(pose);
-        map_clouds.push(for_map);
-        sources.push(source);
+        if let Some(refinement) = &mut refinement {
+            refinement.push(RefineFrame::new(&cropped, for_map, params), &mut poses, params);
+        }
         last_motion = motion;
         last_dt_s = dt_s;
         if on_progress(k + 1, frame_count).is_break() {
             return Err(OdometryError::Cancelled { frames_done: k + 1 }.into());
         }
     }
-    if params.refine_window_frames > 0 {
-        refine(&mut poses, &map_clouds, &sources, params);
+    if let Some(refinement) = refinement {
+        refinement.finish(&mut poses, params);
     }
     Ok(Odometry { world_from_sensor: poses, frames: diagnostics })
-}
-
-/// Sweeps of the refinement over the frames ([`OdometryParams::refine_window_frames`]).
-pub const REFINE_SWEEPS: usize = 2;
-
-/// Correspondences farther than this are ignored in the refinement (m): the poses are already
-/// within centimetres, so anything farther is another surface or something moving.
-const REFINE_MAX_DISTANCE_M: f64 = 0.5;
-
-/// Geman-McClure scale of the refinement (m).
-const REFINE_KERNEL_M: f64 = 0.1;
-
-/// Registers every frame but the first again (in order, [`REFINE_SWEEPS`] times) against a map
-/// of its neighbours on both sides at their current poses: a frame is then held by the sweeps
-/// after it as well as before, and the first frames by more than the one or two sweeps they
-/// met. Frame 0 stays the identity. A frame whose registration fails keeps its pose.
-fn refine(poses: &mut [Isometry3<f64>], map_clouds: &[Vec<Point>], sources: &[Vec<Point>], params: &OdometryParams) {
-    let settings = IcpSettings {
-        max_distance_m: REFINE_MAX_DISTANCE_M,
-        kernel_m: REFINE_KERNEL_M,
-        max_iterations: params.max_iterations,
-        convergence_m: params.convergence_m,
-    };
-    let window = params.refine_window_frames;
-    for _ in 0..REFINE_SWEEPS {
-        for k in 1..poses.len() {
-            let mut map = VoxelMap::new(params.voxel_m, params.max_points_per_voxel);
-            // Nearest frames first, so that full voxels keep the likeliest-overlapping points.
-            let mut neighbours: Vec<usize> =
-                (k.saturating_sub(window)..=(k + window).min(poses.len() - 1)).filter(|&j| j != k).collect();
-            neighbours.sort_by_key(|&j| (j.abs_diff(k), j));
-            for j in neighbours {
-                map.add(&transform_points(&poses[j], &map_clouds[j]));
-            }
-            let shapes = map.local_shapes(PLANE_THICKNESS_M, true);
-            if let Some(fit) = align_to_map(&sources[k], &map, &shapes, poses[k], &settings) {
-                poses[k] = fit.world_from_sensor;
-            }
-        }
-    }
 }
 
 /// The points within the odometry's range.
