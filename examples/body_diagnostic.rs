@@ -99,12 +99,15 @@ fn main() -> anyhow::Result<()> {
             }
         }
         let end = checkpoints.len() - 1;
+        let (mut moving_within, mut moving_points) = (0usize, 0usize);
         for (id, members) in &per_object {
             let object = &sim.objects[*id as usize];
             if !object.dynamic || members.len() < 50 {
                 continue;
             }
             let within = members.iter().filter(|&&i| error(i, end) < 0.5).count();
+            moving_within += within;
+            moving_points += members.len();
             let mut bodies: BTreeMap<i32, usize> = BTreeMap::new();
             for &i in members {
                 *bodies.entry(owners[i]).or_default() += 1;
@@ -219,6 +222,10 @@ fn main() -> anyhow::Result<()> {
                 println!("    model{line}");
             }
         }
+        println!(
+            "  moving objects' frame-0 points within 0.5 m at the end: {moving_within} of {moving_points} ({:.1} %)",
+            100.0 * moving_within as f64 / moving_points.max(1) as f64
+        );
         // What each body holds over all frames, by the kind of the simulator's objects.
         let all_owners = model.object_ids(&sim.frames)?;
         for body in model.bodies() {
