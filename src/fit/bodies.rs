@@ -366,18 +366,14 @@ fn track_body(
     // The registrations as they are; `poses` becomes their smooth motion.
     let mut registered = poses.clone();
     let mut centre = centroid(&model);
-    let sightings = |on_body: &[Picked], regained: &[bool]| -> Vec<Sighting> {
-        (0..t).map(|j| Sighting { points: on_body[j].points.len(), regained: regained[j] }).collect()
+    // The smooth motion through the registrations, told each frame's points and whether it was
+    // found again after a gap.
+    let smooth = |poses: &mut [Rigid], observed: &[bool], on_body: &[Picked], regained: &[bool], centre: [f64; 3]| {
+        let sightings: Vec<Sighting> =
+            (0..t).map(|j| Sighting { points: on_body[j].points.len(), regained: regained[j] }).collect();
+        smooth_poses(poses, observed, &sightings, times, max_extrapolation, centre, params.smooth_outlier_m)
     };
-    let mut held = smooth_poses(
-        &mut poses,
-        &observed,
-        &sightings(&on_body, &regained),
-        times,
-        max_extrapolation,
-        centre,
-        params.smooth_outlier_m,
-    );
+    let mut held = smooth(&mut poses, &observed, &on_body, &regained, centre);
     // Frames the tracking lost (an occlusion, a turn the constant-velocity guess missed, a sweep
     // too sparse for a cluster) are looked for again where the smooth motion, fitted to every
     // frame seen, puts the body: it is a far better guess than the chain's prediction was.
@@ -420,15 +416,7 @@ fn track_body(
         }
         centre = centroid(&model);
         poses.clone_from(&registered);
-        held = smooth_poses(
-            &mut poses,
-            &observed,
-            &sightings(&on_body, &regained),
-            times,
-            max_extrapolation,
-            centre,
-            params.smooth_outlier_m,
-        );
+        held = smooth(&mut poses, &observed, &on_body, &regained, centre);
     }
     let seen = observed.iter().filter(|&&o| o).count();
     // Still or moving, from every observed frame: the seed's points carried by the body's motion

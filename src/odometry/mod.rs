@@ -72,10 +72,10 @@ pub struct OdometryParams {
     pub initial_search_m: f64,
     /// Step of that grid (m; default 0.2).
     pub initial_search_step_m: f64,
-    /// After the forward pass, each frame is registered again, [`REFINE_SWEEPS`] times in
-    /// order, against a map of the frames up to this many before and after it (default 4, 0 =
-    /// no refinement): the first frames met a map of one or two sweeps, and every frame met only
-    /// the past.
+    /// Each frame is registered again, [`REFINE_SWEEPS`] times, against a map of the frames up
+    /// to this many before and after it, as soon as they are placed (default 4, 0 = no
+    /// refinement): the first frames met a map of one or two sweeps, and every frame met only
+    /// the past. Memory holds about this many times [`REFINE_SWEEPS`] + 1 frames' clouds.
     pub refine_window_frames: usize,
     /// ICP iterations per frame at most (default 500).
     pub max_iterations: usize,
