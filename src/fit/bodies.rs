@@ -1166,22 +1166,35 @@ fn straight_road(pool: &[usize], pos: &[[f64; 3]]) -> Option<[f64; 2]> {
     if pool.len() < 5 {
         return None;
     }
-    let n = pool.len() as f64;
-    let mean = [0, 1].map(|a| pool.iter().map(|&j| pos[j][a]).sum::<f64>() / n);
-    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
-    for &j in pool {
-        let (dx, dy) = (pos[j][0] - mean[0], pos[j][1] - mean[1]);
-        sxx += dx * dx / n;
-        syy += dy * dy / n;
-        sxy += dx * dy / n;
-    }
+    let (_, [sxx, syy, sxy]) = planar_moments(pool, pos, |_| 1.0);
     let half_gap = ((sxx - syy) / 2.0).hypot(sxy);
     let (along, across) = ((sxx + syy) / 2.0 + half_gap, ((sxx + syy) / 2.0 - half_gap).max(0.0));
     if along.sqrt() < STRAIGHT_ROAD_MIN_SPREAD_M || across.sqrt() > STRAIGHT_ROAD_RMS_M {
         return None;
     }
+    Some(principal_direction([sxx, syy, sxy]))
+}
+
+/// The mean (x, y) of the centres `pos` of the frames `pool`, weighted by `weight(frame)`, and
+/// their weighted second moments about it (xx, yy, xy), for the line they keep to.
+fn planar_moments(pool: &[usize], pos: &[[f64; 3]], weight: impl Fn(usize) -> f64) -> ([f64; 2], [f64; 3]) {
+    let total: f64 = pool.iter().map(|&j| weight(j)).sum();
+    let mean = [0, 1].map(|a| pool.iter().map(|&j| weight(j) * pos[j][a]).sum::<f64>() / total);
+    let mut moments = [0.0; 3];
+    for &j in pool {
+        let (dx, dy, w) = (pos[j][0] - mean[0], pos[j][1] - mean[1], weight(j));
+        moments[0] += w * dx * dx;
+        moments[1] += w * dy * dy;
+        moments[2] += w * dx * dy;
+    }
+    (mean, moments.map(|m| m / total))
+}
+
+/// The unit direction (x, y, either sign) of the principal axis of second moments (xx, yy, xy):
+/// the total-least-squares line.
+fn principal_direction([sxx, syy, sxy]: [f64; 3]) -> [f64; 2] {
     let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    Some([angle.cos(), angle.sin()])
+    [angle.cos(), angle.sin()]
 }
 
 /// A body whose centre moves at least this far per frame (m; 3 m/s at 10 Hz) is a vehicle for
@@ -1246,17 +1259,8 @@ fn road_line(
     let (_, at, dir) = best?;
     let on: Vec<usize> = seen.iter().copied().filter(|&j| across(at, dir, j) <= ROAD_LINE_OFF_M).collect();
     // Refitted: the weighted principal axis of the centres on the line.
-    let total: f64 = on.iter().map(|&j| weight(j)).sum();
-    let mean = [0, 1].map(|a| on.iter().map(|&j| weight(j) * pos[j][a]).sum::<f64>() / total);
-    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
-    for &j in &on {
-        let (dx, dy, w) = (pos[j][0] - mean[0], pos[j][1] - mean[1], weight(j));
-        sxx += w * dx * dx;
-        syy += w * dy * dy;
-        sxy += w * dx * dy;
-    }
-    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    let dir = [angle.cos(), angle.sin()];
+    let (mean, moments) = planar_moments(&on, pos, weight);
+    let dir = principal_direction(moments);
     let on: Vec<usize> = seen.iter().copied().filter(|&j| across(mean, dir, j) <= ROAD_LINE_OFF_M).collect();
     let held: f64 = on.iter().map(|&j| weight(j)).sum();
     let all: f64 = seen.iter().map(|&j| weight(j)).sum();

@@ -134,30 +134,22 @@ impl Refinement {
 
     fn advance(&mut self, poses: &mut [Isometry3<f64>], all_pushed: bool, params: &OdometryParams) {
         let pushed = self.frames.len();
-        loop {
-            let mut progressed = false;
-            for s in 0..REFINE_SWEEPS {
-                loop {
-                    let k = self.refined[s];
-                    if k >= pushed {
-                        break;
-                    }
-                    // The last neighbour frame k needs, placed by the sweep before (or the
-                    // forward pass); while frames still come, frame k + window must have come.
-                    let last_needed = if all_pushed { (k + self.window).min(pushed - 1) } else { k + self.window };
-                    let placed = if s == 0 { pushed } else { self.refined[s - 1] };
-                    if last_needed >= placed {
-                        break;
-                    }
-                    if let Some(pose) = refine_frame(k, &poses[..pushed], &self.frames, self.window, params) {
-                        poses[k] = pose;
-                    }
-                    self.refined[s] += 1;
-                    progressed = true;
+        // Sweep s waits only on sweep s - 1 (or the forward pass), so one pass in sweep order
+        // takes each as far as it can go.
+        for s in 0..REFINE_SWEEPS {
+            // Frame k needs its last neighbour placed by the sweep before; while frames still
+            // come, frame k + window must have come.
+            let placed = if s == 0 { pushed } else { self.refined[s - 1] };
+            while self.refined[s] < pushed {
+                let k = self.refined[s];
+                let last_needed = if all_pushed { (k + self.window).min(pushed - 1) } else { k + self.window };
+                if last_needed >= placed {
+                    break;
                 }
-            }
-            if !progressed {
-                break;
+                if let Some(pose) = refine_frame(k, &poses[..pushed], &self.frames, self.window, params) {
+                    poses[k] = pose;
+                }
+                self.refined[s] += 1;
             }
         }
         // The last sweep, the furthest behind, still needs the window before its next frame.
