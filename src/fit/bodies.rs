@@ -151,44 +151,28 @@ pub fn find_moving_bodies(
     }
     // Largest seeds first: they give the body model the most of its shape to start from.
     seeds.sort_by_key(|&(k, c, _, _)| (std::cmp::Reverse(clusters[k][c].len()), k, c));
-    let boxes: Vec<Vec<Aabb>> = (0..t)
-        .map(|k| clusters[k].iter().map(|c| Aabb::of(c.iter().map(|&i| &frames[k][i as usize]))).collect())
-        .collect();
+    let boxes = cluster_boxes(frames, clusters);
     let mut taken: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
-    // Per frame and point: its cluster, or -1.
-    let labels: Vec<Vec<i32>> = (0..t)
-        .map(|k| {
-            let mut label = vec![-1i32; frames[k].len()];
-            for (ci, cluster) in clusters[k].iter().enumerate() {
-                for &i in cluster {
-                    label[i as usize] = ci as i32;
-                }
-            }
-            label
-        })
-        .collect();
+    let labels = cluster_labels(frames, clusters);
     let mut tried: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
     let mut bodies = Vec::new();
     for &(k, c, probe, first) in &seeds {
         if taken[k][c] || tried[k][c] {
             continue;
         }
-        let tracked = track_body(
-            k,
-            c,
-            probe,
-            first,
+        let scene = Scene {
             frames,
             trees,
             clusters,
-            &boxes,
-            &labels,
-            &taken,
+            boxes: &boxes,
+            labels: &labels,
+            taken: &taken,
             rays,
             times,
             max_extrapolation,
             params,
-        );
+        };
+        let tracked = track_body(k, c, probe, first, &scene);
         if !tracked.moving {
             // Still after all, or a seed step that led the track astray: it seeds no other
             // body, but stays free to join one found from a better seed.
@@ -203,6 +187,146 @@ pub fn find_moving_bodies(
         bodies.push(body);
     }
     Some(bodies)
+}
+
+/// A moving body of a log's window, to be followed on into the next window's frames (issue 21:
+/// a sparse car that the next window's own search does not find, or finds only as a few stray
+/// clusters, keeps being tracked there with the model its window built of it).
+#[derive(Debug, Clone)]
+pub struct BodyPrior {
+    /// The body's points in body coordinates: its members of every frame it was seen in.
+    pub model: Vec<Point>,
+    /// Per frame of the next window: the body's pose there (body -> the next window's fit
+    /// coordinates) at the frames the two windows share, `None` after them.
+    pub poses: Vec<Option<Rigid>>,
+}
+
+/// The bodies of `priors` (see [`BodyPrior`]) followed on through the frames after the last one
+/// whose pose each knows, as [`find_moving_bodies`] follows a body from its seed, with
+/// `existing` the bodies the frames' own search found (their points are taken). The inputs are
+/// those of [`find_moving_bodies`]. A prior is kept as a body when it is seen in at least
+/// [`MIN_FRAMES_SEEN`] frames after the known ones, its registrations mostly on its smooth
+/// motion, and its shape is still a road user's; the still-or-moving decision was made where it
+/// was found. Deterministic, in the priors' order.
+#[allow(clippy::too_many_arguments)]
+pub fn continue_bodies(
+    priors: &[BodyPrior],
+    existing: &[MovingBody],
+    frames: &[&[Point]],
+    trees: &[&KdTree],
+    clusters: &[&[Vec<u32>]],
+    rays: Option<&[SweepRays]>,
+    times: &[f64],
+    max_extrapolation: f64,
+    params: &BodyParams,
+) -> Vec<MovingBody> {
+    let t = frames.len();
+    let boxes = cluster_boxes(frames, clusters);
+    let labels = cluster_labels(frames, clusters);
+    // A cluster holding a member of an existing body is that body's: members are the frame's
+    // own points, thinned, so they are found by their bits.
+    let mut taken: Vec<Vec<bool>> = (0..t)
+        .map(|k| {
+            let held: HashSet<[u32; 3]> =
+                existing.iter().flat_map(|b| b.members[k].iter().map(|p| p.map(f32::to_bits))).collect();
+            clusters[k]
+                .iter()
+                .map(|c| c.iter().any(|&i| held.contains(&frames[k][i as usize].map(f32::to_bits))))
+                .collect()
+        })
+        .collect();
+    let mut bodies = Vec::new();
+    for prior in priors {
+        if prior.poses.len() != t || prior.model.is_empty() {
+            continue;
+        }
+        let Some(last_known) = prior.poses.iter().rposition(Option::is_some) else {
+            continue;
+        };
+        if last_known == 0 || last_known + 1 >= t || prior.poses[last_known - 1].is_none() {
+            continue;
+        }
+        let scene = Scene {
+            frames,
+            trees,
+            clusters,
+            boxes: &boxes,
+            labels: &labels,
+            taken: &taken,
+            rays,
+            times,
+            max_extrapolation,
+            params,
+        };
+        let Some((body, held_clusters)) = continue_body(prior, last_known, &scene) else {
+            continue;
+        };
+        for (j, cluster) in held_clusters {
+            taken[j][cluster] = true;
+        }
+        bodies.push(body);
+    }
+    bodies
+}
+
+/// [`continue_bodies`] for one prior whose pose is known up to frame `last_known`.
+fn continue_body(prior: &BodyPrior, last_known: usize, s: &Scene<'_>) -> Option<(MovingBody, Vec<(usize, usize)>)> {
+    let t = s.len();
+    let mut track = BodyTrack::new(prior.model.iter().copied(), t, s.params);
+    // The shared frames: where the window before put the body, the frame's points on it.
+    for (j, pose) in prior.poses.iter().enumerate() {
+        let Some(pose) = pose else { continue };
+        track.poses[j] = *pose;
+        let picked = s.associate(pose, &track.model, j);
+        if picked.points.len() >= MIN_OBSERVED_POINTS {
+            track.observed[j] = true;
+            track.on_body[j] = picked;
+        }
+    }
+    let centre = centroid(&track.model);
+    let previous = track.poses[last_known - 1];
+    track.follow(s, last_known, true, None, previous, centre);
+    let seen_after = (last_known + 1..t).filter(|&j| track.observed[j]).count();
+    if seen_after < MIN_FRAMES_SEEN.min(t - last_known - 1) || seen_after == 0 {
+        return None;
+    }
+    let (held, _) = track.smooth_and_reacquire(s);
+    let seen = track.observed.iter().filter(|&&o| o).count();
+    if (held as f64) < MIN_SMOOTH_SHARE * seen as f64 {
+        return None;
+    }
+    let model_tree = KdTree::new(&track.model);
+    track.settle_members(s, &model_tree);
+    let (body, clusters) = track.into_body(s, Rigid::identity());
+    let size: [f32; 3] = std::array::from_fn(|i| body.extent_max_m[i] - body.extent_min_m[i]);
+    let plausible = size[1] <= MAX_WIDTH_M && (MIN_HEIGHT_M..=MAX_HEIGHT_M).contains(&size[2]);
+    plausible.then_some((body, clusters))
+}
+
+/// Each cluster's box, per frame.
+fn cluster_boxes(frames: &[&[Point]], clusters: &[&[Vec<u32>]]) -> Vec<Vec<Aabb>> {
+    frames
+        .iter()
+        .zip(clusters)
+        .map(|(frame, cs)| cs.iter().map(|c| Aabb::of(c.iter().map(|&i| &frame[i as usize]))).collect())
+        .collect()
+}
+
+/// Per frame and point: its cluster, or -1.
+fn cluster_labels(frames: &[&[Point]], clusters: &[&[Vec<u32>]]) -> Vec<Vec<i32>> {
+    frames
+        .iter()
+        .zip(clusters)
+        .map(|(frame, cs)| {
+            let mut label = vec![-1i32; frame.len()];
+            for (ci, cluster) in cs.iter().enumerate() {
+                for &i in cluster {
+                    label[i as usize] = ci as i32;
+                }
+            }
+            label
+        })
+        .collect()
 }
 
 /// An axis-aligned box.
@@ -266,163 +390,315 @@ struct Tracked {
     moving: bool,
 }
 
-/// Follows the body of cluster `c` of frame `k` (its test step `first` to frame `probe`) through
-/// every frame.
-#[allow(clippy::too_many_arguments)]
-fn track_body(
-    k: usize,
-    c: usize,
-    probe: usize,
-    first: Rigid,
-    frames: &[&[Point]],
-    trees: &[&KdTree],
-    clusters: &[&[Vec<u32>]],
-    boxes: &[Vec<Aabb>],
-    labels: &[Vec<i32>],
-    taken: &[Vec<bool>],
-    rays: Option<&[SweepRays]>,
-    times: &[f64],
+/// What tracking a body reads: the frames (fit coordinates) and what was found in them.
+struct Scene<'a> {
+    frames: &'a [&'a [Point]],
+    trees: &'a [&'a KdTree],
+    clusters: &'a [&'a [Vec<u32>]],
+    /// Each cluster's box.
+    boxes: &'a [Vec<Aabb>],
+    /// Per frame and point: its cluster, or -1.
+    labels: &'a [Vec<i32>],
+    /// Clusters already on a body.
+    taken: &'a [Vec<bool>],
+    rays: Option<&'a [SweepRays]>,
+    times: &'a [f64],
     max_extrapolation: f64,
-    params: &BodyParams,
-) -> Tracked {
-    let t = frames.len();
-    // Model points in seed-frame coordinates (the body's pose at frame k is the identity).
-    let mut voxels = VoxelSet::new(params.model_voxel_m);
-    let mut model: Vec<Point> =
-        clusters[k][c].iter().map(|&i| frames[k][i as usize]).filter(|p| voxels.insert(p)).collect();
-    let mut model_tree = KdTree::new(&model);
-    let mut poses = vec![Rigid::identity(); t];
-    let mut observed = vec![false; t];
-    let mut on_body: Vec<Picked> = vec![Picked::default(); t];
-    // Frames registered after the tracking had lost the body at least once.
-    let mut regained = vec![false; t];
-    observed[k] = true;
-    on_body[k] = Picked { points: clusters[k][c].clone(), clusters: vec![c] };
-    let max_src = params.seed.max_track_points;
-    let seed_centre = centroid(&model);
-    let seed_model_points = model.len();
-    for forward in [true, false] {
-        let steps: Vec<usize> = if forward { (k + 1..t).collect() } else { (0..k).rev().collect() };
-        let mut previous = Rigid::identity();
-        let mut current = Rigid::identity();
-        let mut last_seen = times[k];
+    params: &'a BodyParams,
+}
+
+impl Scene<'_> {
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// The points of frame `j` on `model` at pose `guess` ([`associate_widening`]).
+    fn associate(&self, guess: &Rigid, model: &[Point], j: usize) -> Picked {
+        associate_widening(
+            guess,
+            model,
+            j,
+            self.frames,
+            self.clusters,
+            self.boxes,
+            self.taken,
+            &self.labels[j],
+            self.params,
+        )
+    }
+}
+
+/// One body being tracked: its model (points in the model's own coordinates) and, per frame,
+/// its pose (model -> fit coordinates) and the frame's points on it.
+struct BodyTrack {
+    voxels: VoxelSet,
+    model: Vec<Point>,
+    model_tree: KdTree,
+    poses: Vec<Rigid>,
+    observed: Vec<bool>,
+    on_body: Vec<Picked>,
+    /// Frames registered after the tracking had lost the body at least once.
+    regained: Vec<bool>,
+}
+
+impl BodyTrack {
+    /// A body of `frames` frames whose model starts as `model` (thinned to the model's cubes),
+    /// not yet seen in any frame.
+    fn new(model: impl Iterator<Item = Point>, frames: usize, params: &BodyParams) -> Self {
+        let mut voxels = VoxelSet::new(params.model_voxel_m);
+        let model: Vec<Point> = model.filter(|p| voxels.insert(p)).collect();
+        let model_tree = KdTree::new(&model);
+        Self {
+            voxels,
+            model,
+            model_tree,
+            poses: vec![Rigid::identity(); frames],
+            observed: vec![false; frames],
+            on_body: vec![Picked::default(); frames],
+            regained: vec![false; frames],
+        }
+    }
+
+    /// Adds a frame's `points`, taken into model coordinates by `to_model`, to the model.
+    fn grow(&mut self, points: &[Point], to_model: &Rigid) {
+        let before = self.model.len();
+        let voxels = &mut self.voxels;
+        self.model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
+        if self.model.len() != before {
+            self.model_tree = KdTree::new(&self.model);
+        }
+    }
+
+    /// Follows the body from frame `from` (its pose there known) to the end of the sequence
+    /// (`forward`) or its start. The first step is `first_guess` when given, else constant
+    /// velocity from `previous`, the pose of the frame before `from` along the chain. `centre`
+    /// is where the body's step is measured (model coordinates).
+    fn follow(
+        &mut self,
+        s: &Scene<'_>,
+        from: usize,
+        forward: bool,
+        first_guess: Option<Rigid>,
+        previous: Rigid,
+        centre: [f64; 3],
+    ) {
+        let t = s.len();
+        let steps: Vec<usize> = if forward { (from + 1..t).collect() } else { (0..from).rev().collect() };
+        let mut previous = previous;
+        let mut current = self.poses[from];
+        let mut last_seen = s.times[from];
         let mut lost = false;
         for (n, j) in steps.into_iter().enumerate() {
-            if (times[j] - last_seen).abs() > max_extrapolation {
+            if (s.times[j] - last_seen).abs() > s.max_extrapolation {
                 // Past the horizon the body is no longer predicted: it keeps its last predicted
                 // pose, and a guess run far away cannot pick up another object's clusters.
-                poses[j] = current;
+                self.poses[j] = current;
                 lost = true;
                 continue;
             }
-            let guess = if n == 0 {
-                // The seed step, per frame (planar, a fraction of it when the test spanned
-                // several frames), reversed when this chain runs the other way. The fraction is
-                // taken about the cluster's centre: the step's rotation is about the origin, tens
-                // of metres away, and a share of its yaw would swing the car off its path.
-                let gap = probe.abs_diff(k) as f64;
-                let per_frame = fraction_about(&planar_part(&first), seed_centre, 1.0 / gap);
-                if forward == (probe > k) { per_frame } else { per_frame.inverse() }
-            } else {
-                // Constant velocity, scaled to uneven frame spacing by the translation only.
-                let last = if forward { j - 1 } else { j + 1 };
-                let before = if forward { j - 2 } else { j + 2 };
-                let ratio = ((times[j] - times[last]) / (times[last] - times[before])).clamp(0.25, 4.0);
-                // The step is kept on the ground plane (heading and horizontal motion only): a
-                // sparse sweep's tilt or height error must not be repeated into every later frame.
-                let step = planar_part(&current.compose(&previous.inverse()));
-                let mut scaled = step;
-                if (ratio - 1.0).abs() > 1e-9 {
-                    let yaw = yaw_of(&step) * ratio;
-                    scaled = planar(step.translation[0] * ratio, step.translation[1] * ratio, yaw);
+            let guess = match first_guess.filter(|_| n == 0) {
+                Some(guess) => guess,
+                None => {
+                    // Constant velocity, scaled to uneven frame spacing by the translation only.
+                    let last = if forward { j - 1 } else { j + 1 };
+                    let before = if forward { j - 2 } else { j + 2 };
+                    let ratio = ((s.times[j] - s.times[last]) / (s.times[last] - s.times[before])).clamp(0.25, 4.0);
+                    // The step is kept on the ground plane (heading and horizontal motion only): a
+                    // sparse sweep's tilt or height error must not be repeated into every later frame.
+                    let step = planar_part(&current.compose(&previous.inverse()));
+                    let mut scaled = step;
+                    if (ratio - 1.0).abs() > 1e-9 {
+                        let yaw = yaw_of(&step) * ratio;
+                        scaled = planar(step.translation[0] * ratio, step.translation[1] * ratio, yaw);
+                    }
+                    scaled.compose(&current)
                 }
-                scaled.compose(&current)
             };
-            let picked = associate_widening(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params);
+            let picked = s.associate(&guess, &self.model, j);
             let pose = if picked.points.len() < MIN_OBSERVED_POINTS {
                 lost = true;
                 guess
             } else {
-                let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
-                let step_m = horizontal_step(&current, &guess, seed_centre);
-                let along = rays.map(|r| Along { rays: &r[j], step_m });
-                let to_model = register_to_model(&points, &guess, &model, &model_tree, along, t == 2, params);
-                let before = model.len();
-                model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
-                if model.len() != before {
-                    model_tree = KdTree::new(&model);
-                }
-                observed[j] = true;
-                regained[j] = lost;
-                last_seen = times[j];
-                on_body[j] = picked;
+                let points: Vec<Point> = picked.points.iter().map(|&i| s.frames[j][i as usize]).collect();
+                let step_m = horizontal_step(&current, &guess, centre);
+                let along = s.rays.map(|r| Along { rays: &r[j], step_m });
+                let to_model =
+                    register_to_model(&points, &guess, &self.model, &self.model_tree, along, t == 2, s.params);
+                self.grow(&points, &to_model);
+                self.observed[j] = true;
+                self.regained[j] = lost;
+                last_seen = s.times[j];
+                self.on_body[j] = picked;
                 to_model.inverse()
             };
             previous = current;
             current = pose;
-            poses[j] = pose;
+            self.poses[j] = pose;
         }
     }
-    // The registrations as they are; `poses` becomes their smooth motion.
-    let mut registered = poses.clone();
-    let mut centre = centroid(&model);
-    // The smooth motion through the registrations, told each frame's points and whether it was
-    // found again after a gap.
-    let smooth = |poses: &mut [Rigid], observed: &[bool], on_body: &[Picked], regained: &[bool], centre: [f64; 3]| {
-        let sightings: Vec<Sighting> =
-            (0..t).map(|j| Sighting { points: on_body[j].points.len(), regained: regained[j] }).collect();
-        smooth_poses(poses, observed, &sightings, times, max_extrapolation, centre, params.smooth_outlier_m)
-    };
-    let mut held = smooth(&mut poses, &observed, &on_body, &regained, centre);
-    // Frames the tracking lost (an occlusion, a turn the constant-velocity guess missed, a sweep
-    // too sparse for a cluster) are looked for again where the smooth motion, fitted to every
-    // frame seen, puts the body: it is a far better guess than the chain's prediction was.
-    for _ in 0..REACQUIRE_ROUNDS {
-        let mut found = false;
-        for j in 0..t {
-            let near_seen = (0..t).any(|i| observed[i] && (times[i] - times[j]).abs() <= max_extrapolation);
-            if observed[j] || !near_seen {
-                continue;
-            }
-            let guess = poses[j];
-            let picked = associate_widening(&guess, &model, j, frames, clusters, boxes, taken, &labels[j], params);
-            if picked.points.len() < MIN_OBSERVED_POINTS {
-                continue;
-            }
-            let points: Vec<Point> = picked.points.iter().map(|&i| frames[j][i as usize]).collect();
-            let neighbour = if j + 1 < t { j + 1 } else { j.saturating_sub(1) };
-            let step_m = horizontal_step(&poses[neighbour], &guess, centre);
-            let along = rays.map(|r| Along { rays: &r[j], step_m });
-            let to_model = register_to_model(&points, &guess, &model, &model_tree, along, t == 2, params);
-            let pose = to_model.inverse();
-            // A registration that lands far from the smooth motion took something else.
-            let (a, b) = (pose.apply_f64(centre), guess.apply_f64(centre));
-            if (a[0] - b[0]).hypot(a[1] - b[1]) > REACQUIRE_MAX_SHIFT_M {
-                continue;
-            }
-            let before = model.len();
-            model.extend(points.iter().map(|p| to_model.apply(p)).filter(|p| voxels.insert(p)));
-            if model.len() != before {
-                model_tree = KdTree::new(&model);
-            }
-            observed[j] = true;
-            regained[j] = true;
-            on_body[j] = picked;
-            registered[j] = pose;
-            found = true;
-        }
-        if !found {
-            break;
-        }
-        centre = centroid(&model);
-        poses.clone_from(&registered);
-        held = smooth(&mut poses, &observed, &on_body, &regained, centre);
+
+    /// Makes `poses` the smooth motion through them ([`smooth_poses`], told each frame's points
+    /// and whether it was found again after a gap); returns the observed frames it holds.
+    fn smooth(&mut self, s: &Scene<'_>, centre: [f64; 3]) -> usize {
+        let sightings: Vec<Sighting> = (0..s.len())
+            .map(|j| Sighting { points: self.on_body[j].points.len(), regained: self.regained[j] })
+            .collect();
+        let (times, outlier_m) = (s.times, s.params.smooth_outlier_m);
+        smooth_poses(&mut self.poses, &self.observed, &sightings, times, s.max_extrapolation, centre, outlier_m)
     }
+
+    /// Smooths the registered poses and looks again, where the smooth motion puts the body, for
+    /// it in the frames the tracking lost (an occlusion, a turn the constant-velocity guess
+    /// missed, a sweep too sparse for a cluster): the smooth motion, fitted to every frame seen,
+    /// is a far better guess than the chain's prediction was. Returns the observed frames the
+    /// final smooth motion holds and the model's centre it was fitted about.
+    fn smooth_and_reacquire(&mut self, s: &Scene<'_>) -> (usize, [f64; 3]) {
+        let t = s.len();
+        // The registrations as they are; `poses` becomes their smooth motion.
+        let mut registered = self.poses.clone();
+        let mut centre = centroid(&self.model);
+        let mut held = self.smooth(s, centre);
+        for _ in 0..REACQUIRE_ROUNDS {
+            let mut found = false;
+            for j in 0..t {
+                let near_seen =
+                    (0..t).any(|i| self.observed[i] && (s.times[i] - s.times[j]).abs() <= s.max_extrapolation);
+                if self.observed[j] || !near_seen {
+                    continue;
+                }
+                let guess = self.poses[j];
+                let picked = s.associate(&guess, &self.model, j);
+                if picked.points.len() < MIN_OBSERVED_POINTS {
+                    continue;
+                }
+                let points: Vec<Point> = picked.points.iter().map(|&i| s.frames[j][i as usize]).collect();
+                let neighbour = if j + 1 < t { j + 1 } else { j.saturating_sub(1) };
+                let step_m = horizontal_step(&self.poses[neighbour], &guess, centre);
+                let along = s.rays.map(|r| Along { rays: &r[j], step_m });
+                let to_model =
+                    register_to_model(&points, &guess, &self.model, &self.model_tree, along, t == 2, s.params);
+                let pose = to_model.inverse();
+                // A registration that lands far from the smooth motion took something else.
+                let (a, b) = (pose.apply_f64(centre), guess.apply_f64(centre));
+                if (a[0] - b[0]).hypot(a[1] - b[1]) > REACQUIRE_MAX_SHIFT_M {
+                    continue;
+                }
+                self.grow(&points, &to_model);
+                self.observed[j] = true;
+                self.regained[j] = true;
+                self.on_body[j] = picked;
+                registered[j] = pose;
+                found = true;
+            }
+            if !found {
+                break;
+            }
+            centre = centroid(&self.model);
+            self.poses.clone_from(&registered);
+            held = self.smooth(s, centre);
+        }
+        (held, centre)
+    }
+
+    /// The members of each observed frame, once more with the whole model: a frame's sweep is
+    /// picked while the model holds only what the frames before it saw, so points of the car
+    /// that the model did not yet cover (another face, a cluster DBSCAN split off) were left out.
+    /// Loose points only: within the fine correspondence distance of the posed model, and not
+    /// on another body's clusters. Then the points of the still world the body took in (a tree
+    /// it drove past, a wall behind a pedestrian) leave it: the still world explains them and
+    /// the body's motion does not. `model_tree` is built over the model.
+    fn settle_members(&mut self, s: &Scene<'_>, model_tree: &KdTree) {
+        let t = s.len();
+        let params = s.params;
+        let loose2 = params.fine_corr_dist_m * params.fine_corr_dist_m;
+        for j in (0..t).filter(|&j| self.observed[j]) {
+            let to_model = self.poses[j].inverse();
+            let picked = &mut self.on_body[j];
+            let already: HashSet<u32> = picked.points.iter().copied().collect();
+            let posed_box = Aabb::of(self.model.iter().map(|p| self.poses[j].apply(p)).collect::<Vec<_>>().iter());
+            for (i, p) in s.frames[j].iter().enumerate() {
+                let label = s.labels[j][i];
+                let free = label < 0 || !s.taken[j][label as usize];
+                let inside = (0..3).all(|c| {
+                    p[c] >= posed_box.min[c] - params.fine_corr_dist_m
+                        && p[c] <= posed_box.max[c] + params.fine_corr_dist_m
+                });
+                if free
+                    && inside
+                    && !already.contains(&(i as u32))
+                    && model_tree.nearest(&to_model.apply(p)).is_some_and(|h| h.dist2 <= loose2)
+                {
+                    picked.points.push(i as u32);
+                }
+            }
+            picked.points.sort_unstable();
+        }
+        for j in (0..t).filter(|&j| self.observed[j]) {
+            let sweeps = still_test_sweeps(j, &self.poses, s.trees);
+            self.on_body[j].points.retain(|&i| !still_member(&s.frames[j][i as usize], &sweeps));
+        }
+    }
+
+    /// The body, its model's coordinates taken to body coordinates by `body_to_model`, with the
+    /// extent of the model, and the (frame, cluster) pairs it holds.
+    fn into_body(self, s: &Scene<'_>, body_to_model: Rigid) -> (MovingBody, Vec<(usize, usize)>) {
+        let t = s.len();
+        let model_to_body = body_to_model.inverse();
+        let mut extent_min_m = [f32::INFINITY; 3];
+        let mut extent_max_m = [f32::NEG_INFINITY; 3];
+        for p in &self.model {
+            let q = model_to_body.apply(p);
+            for i in 0..3 {
+                extent_min_m[i] = extent_min_m[i].min(q[i]);
+                extent_max_m[i] = extent_max_m[i].max(q[i]);
+            }
+        }
+        let member_counts: Vec<usize> = self.on_body.iter().map(|p| p.points.len()).collect();
+        let members: Vec<Vec<Point>> = (0..t)
+            .map(|j| thin(self.on_body[j].points.iter().map(|&i| s.frames[j][i as usize]), s.params.member_voxel_m))
+            .collect();
+        let clusters = (0..t).flat_map(|j| self.on_body[j].clusters.iter().map(move |&ci| (j, ci))).collect();
+        let body = MovingBody {
+            id: 0,
+            poses: self.poses.iter().map(|p| p.compose(&body_to_model)).collect(),
+            observed: self.observed,
+            members,
+            member_counts,
+            extent_min_m,
+            extent_max_m,
+        };
+        (body, clusters)
+    }
+}
+
+/// Follows the body of cluster `c` of frame `k` (its test step `first` to frame `probe`) through
+/// every frame.
+fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> Tracked {
+    let (t, frames, trees, params) = (s.len(), s.frames, s.trees, s.params);
+    // Model points in seed-frame coordinates (the body's pose at frame k is the identity).
+    let mut track = BodyTrack::new(s.clusters[k][c].iter().map(|&i| frames[k][i as usize]), t, params);
+    track.observed[k] = true;
+    track.on_body[k] = Picked { points: s.clusters[k][c].clone(), clusters: vec![c] };
+    let max_src = params.seed.max_track_points;
+    let seed_centre = centroid(&track.model);
+    let seed_model_points = track.model.len();
+    for forward in [true, false] {
+        // The seed step, per frame (planar, a fraction of it when the test spanned several
+        // frames), reversed when this chain runs the other way. The fraction is taken about the
+        // cluster's centre: the step's rotation is about the origin, tens of metres away, and a
+        // share of its yaw would swing the car off its path.
+        let gap = probe.abs_diff(k) as f64;
+        let per_frame = fraction_about(&planar_part(&first), seed_centre, 1.0 / gap);
+        let guess = if forward == (probe > k) { per_frame } else { per_frame.inverse() };
+        track.follow(s, k, forward, Some(guess), Rigid::identity(), seed_centre);
+    }
+    let (held, centre) = track.smooth_and_reacquire(s);
+    let (observed, poses, on_body) = (&track.observed, &track.poses, &track.on_body);
     let seen = observed.iter().filter(|&&o| o).count();
     // Still or moving, from every observed frame: the seed's points carried by the body's motion
     // must fit that frame clearly better than left standing (the seed test, frame by frame) in
     // at least half of them. A static cluster that slid a little on a few registrations fails.
-    let src = cluster_subsample(frames[k], &clusters[k][c], max_src);
+    let src = cluster_subsample(frames[k], &s.clusters[k][c], max_src);
     let mut scratch = DistanceScratch::default();
     let cap_m = params.seed.max_corr_dist_m;
     let (mut tested, mut clear) = (0usize, 0usize);
@@ -440,7 +716,7 @@ fn track_body(
         let moved = mean_distance_m(&src, &poses[j], trees[j], cap_m, &mut scratch);
         // For a seed as long as a car, the sensor's rays say what the distances cannot of one
         // moving along its own flank, which left standing still overlaps its next sweep.
-        if is_clear(still, moved) || (long_seed && rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j]))) {
+        if is_clear(still, moved) || (long_seed && s.rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j]))) {
             clear += 1;
             clear_points += on_body[j].points.len();
             continue;
@@ -476,75 +752,24 @@ fn track_body(
         })
         .fold(0.0, f64::max);
     // The body frame: origin at the model's centre, x along the direction of travel.
-    let heading = travel_heading(&poses, k, centre);
+    let heading = travel_heading(poses, k, centre);
     let body_to_seed = Rigid::from_yaw(heading, centre);
     let seed_to_body = body_to_seed.inverse();
     // Two things side by side across the travel (DBSCAN merged a car with the parked car it
     // drove past, in the frames where they nearly touched): the side holding the seed is the
     // body; the model and the members leave the other.
-    if let Some((lo, hi)) = seed_side_across(&model, seed_model_points, &seed_to_body) {
-        model.retain(|p| (lo..=hi).contains(&seed_to_body.apply(p)[1]));
-        for j in (0..t).filter(|&j| observed[j]) {
-            let to_body = seed_to_body.compose(&poses[j].inverse());
-            on_body[j].points.retain(|&i| (lo..=hi).contains(&to_body.apply(&frames[j][i as usize])[1]));
+    if let Some((lo, hi)) = seed_side_across(&track.model, seed_model_points, &seed_to_body) {
+        track.model.retain(|p| (lo..=hi).contains(&seed_to_body.apply(p)[1]));
+        for j in (0..t).filter(|&j| track.observed[j]) {
+            let to_body = seed_to_body.compose(&track.poses[j].inverse());
+            track.on_body[j].points.retain(|&i| (lo..=hi).contains(&to_body.apply(&frames[j][i as usize])[1]));
         }
     }
-    let mut extent_min_m = [f32::INFINITY; 3];
-    let mut extent_max_m = [f32::NEG_INFINITY; 3];
-    for p in &model {
-        let q = seed_to_body.apply(p);
-        for i in 0..3 {
-            extent_min_m[i] = extent_min_m[i].min(q[i]);
-            extent_max_m[i] = extent_max_m[i].max(q[i]);
-        }
-    }
-    // The members of each observed frame, once more with the whole model: a frame's sweep is
-    // picked while the model holds only what the frames before it saw, so points of the car
-    // that the model did not yet cover (another face, a cluster DBSCAN split off) were left out.
-    // Loose points only: within the fine correspondence distance of the posed model, and not
-    // on another body's clusters.
-    let model_tree = KdTree::new(&model);
-    let loose2 = params.fine_corr_dist_m * params.fine_corr_dist_m;
-    for j in (0..t).filter(|&j| observed[j]) {
-        let to_model = poses[j].inverse();
-        let picked = &mut on_body[j];
-        let already: HashSet<u32> = picked.points.iter().copied().collect();
-        let posed_box = Aabb::of(model.iter().map(|p| poses[j].apply(p)).collect::<Vec<_>>().iter());
-        for (i, p) in frames[j].iter().enumerate() {
-            let label = labels[j][i];
-            let free = label < 0 || !taken[j][label as usize];
-            let inside = (0..3).all(|c| {
-                p[c] >= posed_box.min[c] - params.fine_corr_dist_m && p[c] <= posed_box.max[c] + params.fine_corr_dist_m
-            });
-            if free
-                && inside
-                && !already.contains(&(i as u32))
-                && model_tree.nearest(&to_model.apply(p)).is_some_and(|h| h.dist2 <= loose2)
-            {
-                picked.points.push(i as u32);
-            }
-        }
-        picked.points.sort_unstable();
-    }
-    // Points of the still world a body took in (a tree it drove past, a wall behind a
-    // pedestrian) leave it: the still world explains them and the body's motion does not.
-    for j in (0..t).filter(|&j| observed[j]) {
-        let sweeps = still_test_sweeps(j, &poses, trees);
-        on_body[j].points.retain(|&i| !still_member(&frames[j][i as usize], &sweeps));
-    }
-    let member_counts: Vec<usize> = on_body.iter().map(|p| p.points.len()).collect();
-    let members: Vec<Vec<Point>> =
-        (0..t).map(|j| thin(on_body[j].points.iter().map(|&i| frames[j][i as usize]), params.member_voxel_m)).collect();
-    let clusters_on_body = (0..t).flat_map(|j| on_body[j].clusters.iter().map(move |&ci| (j, ci))).collect();
-    let body = MovingBody {
-        id: 0,
-        poses: poses.iter().map(|p| p.compose(&body_to_seed)).collect(),
-        observed,
-        members,
-        member_counts,
-        extent_min_m,
-        extent_max_m,
-    };
+    let model_tree = KdTree::new(&track.model);
+    track.settle_members(s, &model_tree);
+    let poses = track.poses.clone();
+    let (body, clusters_on_body) = track.into_body(s, body_to_seed);
+    let (extent_min_m, extent_max_m) = (body.extent_min_m, body.extent_max_m);
     // A body is a consistent object: seen often enough to judge, its registrations mostly on one
     // smooth motion (a "body" that hops between unrelated clusters is not), clearly not standing
     // still, and travelling.
@@ -567,7 +792,7 @@ fn track_body(
         // Evidence from outside the body's own registrations, last as it costs the most: the
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
-        && rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
+        && s.rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
     Tracked { body, clusters: clusters_on_body, moving }
 }
 
@@ -2170,5 +2395,95 @@ mod tests {
                 "frame {j}: {across:.2} m across, {along:.2} m along, {turned:.2} rad"
             );
         }
+    }
+
+    /// `s` with the straight box (box 0) seen by `sparse_points` of its points from frame
+    /// `from` on (none with 0), in no cluster: too few for the search to seed a body from.
+    fn thinned_box_zero(s: &Scene, from: usize, sparse_points: usize) -> Scene {
+        let mut out =
+            Scene { frames: Vec::new(), clusters: Vec::new(), times: s.times.clone(), truth: s.truth.clone() };
+        for (k, (frame, clusters)) in s.frames.iter().zip(&s.clusters).enumerate() {
+            if k < from {
+                out.frames.push(frame.clone());
+                out.clusters.push(clusters.clone());
+                continue;
+            }
+            // The wall (800 points), the other two boxes (500 each) as clusters, then box 0's few.
+            let box0 = &frame[800..1300];
+            let mut kept: Vec<Point> = frame[..800].to_vec();
+            kept.extend_from_slice(&frame[1300..]);
+            let others: Vec<Vec<u32>> = vec![(0..800).collect(), (800..1300).collect(), (1300..1800).collect()];
+            kept.extend(box0.iter().step_by(500 / sparse_points.max(1)).take(sparse_points));
+            out.frames.push(kept);
+            out.clusters.push(others);
+        }
+        out
+    }
+
+    #[test]
+    fn a_body_of_the_window_before_is_followed_on_through_sparse_sweeps_within_a_decimetre() {
+        let (from, t) = (5, 16);
+        let s = thinned_box_zero(&scene(t), from, 25);
+        let trees: Vec<KdTree> = s.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
+        let params = BodyParams::default();
+        let existing = bodies_of(&s, &params);
+        // The frames' own search has no body for box 0 after `from`: 25 loose points a sweep.
+        let on_box0 = |b: &MovingBody| b.observed[from..].iter().any(|&o| o) && box_of(&s, b) == 0;
+        assert!(!existing.iter().any(on_box0), "the search alone follows box 0 on");
+        // The window before knew box 0 (body coordinates: the box's own) up to frame `from` - 1.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let prior = BodyPrior {
+            model: box_surface(&mut rng, 2000, [4.2, 1.8, 1.5]),
+            poses: (0..t).map(|j| (j < from).then(|| s.truth[0][j])).collect(),
+        };
+        let continued = continue_bodies(
+            std::slice::from_ref(&prior),
+            &existing,
+            &frames,
+            &trees,
+            &clusters,
+            None,
+            &s.times,
+            3.0,
+            &params,
+        );
+        assert_eq!(continued.len(), 1);
+        let body = &continued[0];
+        assert!(body.fits(t));
+        assert!(body.observed[from..].iter().all(|&o| o), "seen in every sparse sweep: {:?}", body.observed);
+        for j in 0..t {
+            let err = [[0.0, 0.0, 0.0], [4.2, 0.0, 0.0], [0.0, 1.8, 1.5], [4.2, 1.8, 1.5]]
+                .iter()
+                .map(|&corner| {
+                    let (got, want) = (body.poses[j].apply_f64(corner), s.truth[0][j].apply_f64(corner));
+                    (0..3).map(|x| (got[x] - want[x]).powi(2)).sum::<f64>().sqrt()
+                })
+                .fold(0.0, f64::max);
+            assert!(err < 0.1, "frame {j}: corner {err:.3} m off");
+        }
+        // Its members are box 0's points, not the other boxes' (taken by the existing bodies).
+        assert!(body.member_counts[from..].iter().all(|&n| (10..=25).contains(&n)), "{:?}", body.member_counts);
+        // A box that leaves the sensor's view at `from` is not followed on.
+        let gone = thinned_box_zero(&scene(t), from, 0);
+        let frames: Vec<&[Point]> = gone.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<KdTree> = gone.frames.iter().map(|f| KdTree::new(f)).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let clusters: Vec<&[Vec<u32>]> = gone.clusters.iter().map(Vec::as_slice).collect();
+        let existing = bodies_of(&gone, &params);
+        let none = continue_bodies(
+            std::slice::from_ref(&prior),
+            &existing,
+            &frames,
+            &trees,
+            &clusters,
+            None,
+            &gone.times,
+            3.0,
+            &params,
+        );
+        assert!(none.is_empty());
     }
 }

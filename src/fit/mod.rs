@@ -297,6 +297,52 @@ pub(crate) fn fit_single(
     Ok(model)
 }
 
+/// `model` (a window of a log, fitted with its poses, frames `part`) with the bodies of
+/// `priors` followed on through its frames where they are found ([`bodies::continue_bodies`]),
+/// and its free points decided again with them. `model` is returned unchanged when no prior is
+/// found or it has no poses (no bodies then).
+pub(crate) fn continue_window_bodies(
+    model: FittedModel,
+    part: &Sequence,
+    params: &ValidFitParams,
+    priors: &[bodies::BodyPrior],
+) -> Result<FittedModel, FitError> {
+    let Some(poses) = model.frame_poses().map(<[Rigid]>::to_vec) else {
+        return Ok(model);
+    };
+    // The same points, clusters and rays the window's own fit found its bodies in.
+    let (frames, _) = prepare::prepare_frames(part, params, true, false, Some(&poses))?;
+    let points: Vec<&[Point]> = frames.iter().map(|f| f.full.points.as_slice()).collect();
+    let trees: Vec<&KdTree> = frames.iter().map(|f| &f.full.tree).collect();
+    let clusters: Vec<&[Vec<u32>]> = frames.iter().map(|f| f.full.clusters.as_slice()).collect();
+    let rays: Vec<visibility::SweepRays> =
+        part.frames.par_iter().zip(&poses).map(|(f, pose)| visibility::SweepRays::new(f, pose)).collect();
+    let axis = part.time_axis();
+    let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+    let found = bodies::continue_bodies(
+        priors,
+        model.bodies(),
+        &points,
+        &trees,
+        &clusters,
+        Some(&rays),
+        &times,
+        extrapolation_horizon(&axis),
+        &bodies::BodyParams::default(),
+    );
+    if found.is_empty() {
+        return Ok(model);
+    }
+    let mut all = model.bodies().to_vec();
+    for mut body in found {
+        body.id = all.len() as u32;
+        all.push(body);
+    }
+    let model = model.with_bodies(all);
+    let free = network_free_points(&model, &points, &trees);
+    Ok(model.with_free_points(free))
+}
+
 pub use crate::model::MAX_EXTRAPOLATION_S;
 
 /// [`MAX_EXTRAPOLATION_S`] in the units of `axis`'s times (s, or frame indices).

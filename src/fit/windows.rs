@@ -25,8 +25,10 @@
 
 use std::ops::ControlFlow;
 
+use super::bodies::BodyPrior;
 use super::checkpoint::Checkpoints;
 use super::{FitError, FrameSource, Progress, Sequence, fit_coordinates, fit_single, validate_log};
+use crate::geometry::rigid::Rigid;
 use crate::model::FittedModel;
 use crate::model::params::{Method, ValidFitParams};
 
@@ -116,6 +118,41 @@ fn window_part(
 /// The log's poses as the windows use them (relative to frame 0, row-major), settled once.
 fn world_poses(coordinates: &super::FitCoordinates) -> Option<Vec<[f64; 16]>> {
     coordinates.frame_poses.as_ref().map(|poses| poses.iter().map(|p| p.to_row_major()).collect())
+}
+
+/// The bodies of window `before` (its model and first frame) that window `after` has no body
+/// for in the frames they share ([`crate::model::unlinked_bodies`]), as priors for following
+/// them on through `after`'s frames: each one's model from its members of every frame it was
+/// seen in, and its poses at the shared frames. `log_poses` are the log's poses (each frame's
+/// sensor coordinates to frame 0's).
+fn body_priors(
+    (before, before_start): (&FittedModel, usize),
+    (after, after_start): (&FittedModel, usize),
+    log_poses: &[Rigid],
+) -> Vec<BodyPrior> {
+    let frames = after.time_axis().frames();
+    crate::model::unlinked_bodies(
+        (before, before_start, &log_poses[before_start]),
+        (after, after_start, &log_poses[after_start]),
+    )
+    .into_iter()
+    .map(|(b, shared)| {
+        let body = &before.bodies()[b];
+        let model = body
+            .frames_seen()
+            .into_iter()
+            .flat_map(|j| {
+                let to_body = body.poses[j].inverse();
+                body.members[j].iter().map(move |p| to_body.apply(p))
+            })
+            .collect();
+        let mut poses = vec![None; frames];
+        for (pose, slot) in shared.into_iter().zip(&mut poses) {
+            *slot = Some(pose);
+        }
+        BodyPrior { model, poses }
+    })
+    .collect()
 }
 
 /// Fits window `window` of a log alone, as [`fit_log`] fits it (same frames, poses and
@@ -336,6 +373,29 @@ pub fn fit_log(
                 return Err(FitError::Cancelled { iteration: idle.iteration });
             }
             std::thread::sleep(WAIT_FOR_OTHERS);
+        }
+    }
+    // A body a window followed into the next one's frames, and which that window's own search
+    // did not find there, is followed on through them (in log order, so that it can go on into
+    // the windows after). Done here, where every window is at hand: each window's own fit stays
+    // a unit of work that depends on its frames only.
+    if let (Some(log_poses), true) = (coordinates.frame_poses.as_deref(), window_params.moving_bodies) {
+        for w in 1..starts.len() {
+            let before = windows[w - 1].as_ref().expect("every window is done");
+            let after = windows[w].as_ref().expect("every window is done");
+            let priors = body_priors((before, starts[w - 1]), (after, starts[w]), log_poses);
+            if priors.is_empty() {
+                continue;
+            }
+            if let Some(p) = &last_progress
+                && on_progress(p).is_break()
+            {
+                return Err(FitError::Cancelled { iteration: p.iteration });
+            }
+            tracing::info!(window = w, bodies = priors.len(), "following bodies of the window before on");
+            let part = window_part(sequence, world.as_deref(), starts[w]..starts[w] + params.window_frames)?;
+            let model = windows[w].take().expect("every window is done");
+            windows[w] = Some(super::continue_window_bodies(model, &part, &window_params, &priors)?);
         }
     }
     let windows: Vec<(usize, FittedModel)> =

@@ -34,6 +34,7 @@ pub use objects::{MovingBody, RigidTrack};
 pub use report::{FitReport, FrameReport, LossCurve, LossRecord, LossTerms, PhaseTimes};
 pub use time::{MAX_EXTRAPOLATION_S, QueryError, TimeAxis};
 pub use windows::LinkShare;
+pub(crate) use windows::unlinked_bodies;
 
 use crate::geometry::Point;
 use crate::geometry::knn::KdTree;

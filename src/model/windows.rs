@@ -674,17 +674,31 @@ fn link_bodies(windows: &[Window], parts: &[&FittedModel], to_log: &[Rigid]) -> 
 /// within [`TRACK_MEMBER_RADIUS_M`] of the other's members of the same frame, and the pair.
 fn link_shares(windows: &[Window], parts: &[&FittedModel], to_log: &[Rigid], w: usize) -> Vec<(f64, usize, usize)> {
     let (previous, window) = (&windows[w - 1], &windows[w]);
-    let overlap = window.start..previous.end();
+    body_link_shares(
+        (parts[w - 1], previous.start, &to_log[w - 1]),
+        (parts[w], window.start, &to_log[w]),
+        window.start..previous.end(),
+    )
+}
+
+/// [`link_shares`] of two windows' models, each given with its first frame in the log and its
+/// fit-to-log transform, over the log frames `overlap` they share.
+fn body_link_shares(
+    (before_part, before_start, before_to_log): (&FittedModel, usize, &Rigid),
+    (after_part, after_start, after_to_log): (&FittedModel, usize, &Rigid),
+    overlap: Range<usize>,
+) -> Vec<(f64, usize, usize)> {
     // Each body's members in each overlap frame, in the log's fit coordinates.
-    let members = |win: &Window, part: &FittedModel, to: &Rigid| -> Vec<Vec<Vec<Point>>> {
+    let members = |part: &FittedModel, start: usize, to: &Rigid| -> Vec<Vec<Vec<Point>>> {
         part.bodies
             .iter()
             .map(|body| {
-                overlap.clone().map(|k| body.members[k - win.start].iter().map(|p| to.apply(p)).collect()).collect()
+                overlap.clone().map(|k| body.members[k - start].iter().map(|p| to.apply(p)).collect()).collect()
             })
             .collect()
     };
-    let (before, after) = (members(previous, parts[w - 1], &to_log[w - 1]), members(window, parts[w], &to_log[w]));
+    let before = members(before_part, before_start, before_to_log);
+    let after = members(after_part, after_start, after_to_log);
     let mut pairs = Vec::new();
     for (a, frames_a) in before.iter().enumerate() {
         for (b, frames_b) in after.iter().enumerate() {
@@ -699,6 +713,32 @@ fn link_shares(windows: &[Window], parts: &[&FittedModel], to_log: &[Rigid], w: 
         }
     }
     pairs
+}
+
+/// The bodies of `before` (a window's model from log frame `before_start`) that no body of
+/// `after` (the next window's, from `after_start`, starting inside `before`) would be linked to
+/// when the two are stitched: each with its pose at every frame the two windows share, taken
+/// into `after`'s fit coordinates (`to_log` gives each window's fit-to-log transform). Only
+/// bodies seen in at least one of the shared frames are listed: the next window may carry on
+/// following them (`fit::windows`).
+pub(crate) fn unlinked_bodies(
+    (before, before_start, before_to_log): (&FittedModel, usize, &Rigid),
+    (after, after_start, after_to_log): (&FittedModel, usize, &Rigid),
+) -> Vec<(usize, Vec<Rigid>)> {
+    let overlap = after_start..before_start + before.time_axis.frames();
+    let shares =
+        body_link_shares((before, before_start, before_to_log), (after, after_start, after_to_log), overlap.clone());
+    let to_after = after_to_log.inverse().compose(before_to_log);
+    before
+        .bodies
+        .iter()
+        .enumerate()
+        .filter(|&(a, body)| {
+            let linked = shares.iter().any(|&(share, pa, _)| pa == a && share >= LINK_MIN_SHARE);
+            !linked && overlap.clone().any(|k| body.observed[k - before_start])
+        })
+        .map(|(a, body)| (a, overlap.clone().map(|k| to_after.compose(&body.poses[k - before_start])).collect()))
+        .collect()
 }
 
 /// How many of `points` lie within [`TRACK_MEMBER_RADIUS_M`] of one of `others`.
