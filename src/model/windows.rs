@@ -901,6 +901,37 @@ mod tests {
     }
 
     #[test]
+    fn a_body_the_next_window_has_no_part_of_is_listed_with_its_poses_in_that_windows_coordinates() {
+        // Windows of 4 frames from log frames 0 and 2 (shared: 2 and 3). The log's poses put
+        // frame 2's sensor 5 m along y from frame 0's.
+        let first = scene_model();
+        let mut empty = scene_model();
+        empty.bodies.clear();
+        let identity = Rigid::identity();
+        let shifted = Rigid { translation: [0.0, 5.0, 0.0], ..Rigid::identity() };
+        let listed = unlinked_bodies((&first, 0, &identity), (&empty, 2, &shifted));
+        assert_eq!(listed.len(), 1);
+        let (body, poses) = &listed[0];
+        assert_eq!(*body, 0);
+        assert_eq!(poses.len(), 2);
+        for (pose, k) in poses.iter().zip(2..4) {
+            let want = shifted.inverse().compose(&first.bodies[0].poses[k]);
+            let (got, want) = (pose.apply_f64([0.5, 0.5, 0.5]), want.apply_f64([0.5, 0.5, 0.5]));
+            assert!((0..3).all(|c| (got[c] - want[c]).abs() < 1e-9), "{got:?} {want:?}");
+            assert!((got[1] - (0.5 - 5.0)).abs() < 1e-9, "{got:?}");
+        }
+        // The same car as a body of the next window (where it is at its log frames): linked, not listed.
+        let mut car = scene_model();
+        car.bodies[0].poses.iter_mut().for_each(|p| p.translation[0] += 2.0);
+        car.bodies[0].members.iter_mut().flatten().for_each(|p| p[0] += 2.0);
+        assert!(unlinked_bodies((&first, 0, &identity), (&car, 2, &identity)).is_empty());
+        // A body not seen in the shared frames is not listed: the next window has nothing to go on.
+        let mut early = scene_model();
+        early.bodies[0].observed = vec![true, true, false, false];
+        assert!(unlinked_bodies((&early, 0, &identity), (&empty, 2, &identity)).is_empty());
+    }
+
+    #[test]
     fn a_still_point_stays_still_when_a_body_of_the_next_window_passes_it_at_the_hand_over() {
         // Two 4-frame windows over 6 frames (starts 0 and 2, hand-over at frame 3): the car is a
         // body of the second window only, at x = 1.2 at log frame 3 (its local frame 1). A point
