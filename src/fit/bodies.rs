@@ -789,11 +789,78 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
         && 2 * clear >= tested
         && 2 * clear_points >= tested_points
         && travel_m >= min_travel_m
+        && !implausible_start_or_stop(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation))
         // Evidence from outside the body's own registrations, last as it costs the most: the
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
         && s.rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
     Tracked { body, clusters: clusters_on_body, moving }
+}
+
+/// A body standing within this distance (m) of one place...
+const STAND_RADIUS_M: f64 = 0.1;
+/// ...for at least this many consecutive observed frames stands there (0.5 s at 10 Hz).
+const STAND_MIN_FRAMES: usize = 5;
+/// A road user leaves or reaches a standstill at most this hard (m/s^2; a car's emergency
+/// braking is about 9.8)...
+const MAX_START_STOP_ACCEL_M_S2: f64 = 10.0;
+/// ...give or take this much (m) of registration scatter.
+const START_STOP_SLACK_M: f64 = 0.25;
+/// Frames after (and before) a standstill checked against [`MAX_START_STOP_ACCEL_M_S2`].
+const START_STOP_FRAMES: usize = 4;
+
+/// Whether the body's smooth motion (`poses`: model -> each frame, measured at the model's
+/// `centre`) stands in one place for a while and leaves it, or arrives at it, faster than a
+/// road user can start or stop: from standing, a body covers at most
+/// `a t^2 / 2` ([`MAX_START_STOP_ACCEL_M_S2`], plus [`START_STOP_SLACK_M`]) in `t`. A parked
+/// car whose registrations slid along its flank while the sensor passed and then stood again
+/// (docs/benchmarks.md section 35: 1.2 m within two frames, then 14 frames standing) does; a
+/// car at a light or a pedestrian who stops does not. `seconds_per_unit` converts `times`.
+fn implausible_start_or_stop(
+    poses: &[Rigid],
+    observed: &[bool],
+    times: &[f64],
+    centre: [f64; 3],
+    seconds_per_unit: f64,
+) -> bool {
+    let seen: Vec<usize> = (0..poses.len()).filter(|&j| observed[j]).collect();
+    let at: Vec<[f64; 3]> = seen.iter().map(|&j| poses[j].apply_f64(centre)).collect();
+    let dist = |a: [f64; 3], b: [f64; 3]| (a[0] - b[0]).hypot(a[1] - b[1]);
+    let mut first = 0;
+    while first < seen.len() {
+        // The longest run of observed frames from `first` within the radius of its first one.
+        let mut end = first + 1;
+        while end < seen.len() && dist(at[end], at[first]) <= STAND_RADIUS_M {
+            end += 1;
+        }
+        if end - first >= STAND_MIN_FRAMES {
+            let edges = [(first, -1i64), (end - 1, 1i64)];
+            for (edge, dir) in edges {
+                for n in 1..=START_STOP_FRAMES as i64 {
+                    let i = edge as i64 + dir * n;
+                    if i < 0 || i >= seen.len() as i64 {
+                        break;
+                    }
+                    let i = i as usize;
+                    let dt_s = (times[seen[i]] - times[seen[edge]]).abs() * seconds_per_unit;
+                    let reach_m = 0.5 * MAX_START_STOP_ACCEL_M_S2 * dt_s * dt_s + START_STOP_SLACK_M;
+                    if dist(at[i], at[edge]) > reach_m {
+                        return true;
+                    }
+                }
+            }
+            first = end;
+        } else {
+            first += 1;
+        }
+    }
+    false
+}
+
+/// Seconds per unit of a sequence's times, from its extrapolation horizon (in those units:
+/// [`crate::model::MAX_EXTRAPOLATION_S`] in seconds, or in frames at 10 Hz).
+fn seconds_per_unit(max_extrapolation: f64) -> f64 {
+    crate::model::MAX_EXTRAPOLATION_S / max_extrapolation
 }
 
 /// A body model wider than [`MAX_WIDTH_M`] across its travel is split where its points leave
@@ -2485,5 +2552,37 @@ mod tests {
             &params,
         );
         assert!(none.is_empty());
+    }
+
+    #[test]
+    fn a_standstill_left_or_reached_faster_than_a_road_user_can_is_implausible() {
+        // Frames at 10 Hz; `x(t)` is the body's centre along x (m) at time t (s).
+        let judge = |x: &dyn Fn(f64) -> f64| {
+            let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+            let poses: Vec<Rigid> = times.iter().map(|&t| planar(x(t), 0.0, 0.0)).collect();
+            implausible_start_or_stop(&poses, &[true; 25], &times, [0.0; 3], 1.0)
+        };
+        // A parked car whose registrations slid 1.2 m within two frames, then stood.
+        assert!(judge(&|t| if t < 1.0 {
+            0.0
+        } else if t < 1.15 {
+            0.6
+        } else {
+            1.2
+        }));
+        // The same slide before standing, backwards in time.
+        assert!(judge(&|t| if t > 1.5 { 0.0 } else { -1.2 }));
+        // A car leaving a light at 3 m/s^2, and one braking hard (8 m/s^2) to a stop.
+        assert!(!judge(&|t: f64| if t < 1.0 { 0.0 } else { 1.5 * (t - 1.0).powi(2) }));
+        assert!(!judge(&|t: f64| if t < 1.0 { 8.0 * t - 4.0 * t * t } else { 4.0 }));
+        // Driving on, and a pedestrian walking at 1.4 m/s: no standstill at all.
+        assert!(!judge(&|t| 10.0 * t));
+        assert!(!judge(&|t| 1.4 * t));
+        // Standing throughout.
+        assert!(!judge(&|_| 3.0));
+        // Frame indices for times (no timestamps): the same jump, judged at 10 Hz.
+        let times: Vec<f64> = (0..25).map(|k| k as f64).collect();
+        let poses: Vec<Rigid> = (0..25).map(|k| planar(if k < 10 { 0.0 } else { 1.2 }, 0.0, 0.0)).collect();
+        assert!(implausible_start_or_stop(&poses, &[true; 25], &times, [0.0; 3], seconds_per_unit(30.0)));
     }
 }
