@@ -789,7 +789,10 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
         && 2 * clear >= tested
         && 2 * clear_points >= tested_points
         && travel_m >= min_travel_m
-        && !implausible_start_or_stop(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation))
+        // A slide along a parked car's flank stays within the car's length; a real car whose
+        // early, far frames the tracking held back before it caught up travels on.
+        && (travel_m >= MAX_SLIDE_M
+            || !implausible_start_or_stop(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation)))
         // Evidence from outside the body's own registrations, last as it costs the most: the
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
@@ -808,6 +811,11 @@ const MAX_START_STOP_ACCEL_M_S2: f64 = 10.0;
 const START_STOP_SLACK_M: f64 = 0.25;
 /// Frames after (and before) a standstill checked against [`MAX_START_STOP_ACCEL_M_S2`].
 const START_STOP_FRAMES: usize = 4;
+/// Only a body travelling less than this (m, about a car's length) is judged by
+/// [`implausible_start_or_stop`]: the registrations of a parked car slid along its flank
+/// (1.8-2.7 m in docs/benchmarks.md sections 28 and 35), not an oncoming car whose far first
+/// frames were registered standing (seed 106: 4.8-9.7 m).
+const MAX_SLIDE_M: f64 = 4.0;
 
 /// Whether the body's smooth motion (`poses`: model -> each frame, measured at the model's
 /// `centre`) stands in one place for a while and leaves it, or arrives at it, faster than a
