@@ -236,9 +236,7 @@ pub(crate) fn fit_single(
         return Ok(model);
     }
     let tracking = std::time::Instant::now();
-    let points: Vec<&[Point]> = frames.iter().map(|f| f.full.points.as_slice()).collect();
-    let trees: Vec<&KdTree> = frames.iter().map(|f| &f.full.tree).collect();
-    let clusters: Vec<&[Vec<u32>]> = frames.iter().map(|f| f.full.clusters.as_slice()).collect();
+    let (points, trees, clusters) = search_inputs(&frames);
     let mut last = last.unwrap_or(Progress {
         iteration: 0,
         iterations: params.iterations,
@@ -258,14 +256,12 @@ pub(crate) fn fit_single(
         on_progress(&last)
     };
     let axis = sequence.time_axis();
-    let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+    let times = frame_times(&axis);
     let horizon = extrapolation_horizon(&axis);
     let mut model = if bodies {
         // What each sweep's rays saw, ground and far returns included: a body's registration
         // along its flank is checked against where the sensor looked through.
-        let rays: Option<Vec<visibility::SweepRays>> = model.frame_poses().map(|poses| {
-            sequence.frames.par_iter().zip(poses).map(|(f, pose)| visibility::SweepRays::new(f, pose)).collect()
-        });
+        let rays: Option<Vec<visibility::SweepRays>> = model.frame_poses().map(|poses| sweep_rays(sequence, poses));
         let found = bodies::find_moving_bodies(
             &points,
             &trees,
@@ -312,13 +308,10 @@ pub(crate) fn continue_window_bodies(
     };
     // The same points, clusters and rays the window's own fit found its bodies in.
     let (frames, _) = prepare::prepare_frames(part, params, true, false, Some(&poses))?;
-    let points: Vec<&[Point]> = frames.iter().map(|f| f.full.points.as_slice()).collect();
-    let trees: Vec<&KdTree> = frames.iter().map(|f| &f.full.tree).collect();
-    let clusters: Vec<&[Vec<u32>]> = frames.iter().map(|f| f.full.clusters.as_slice()).collect();
-    let rays: Vec<visibility::SweepRays> =
-        part.frames.par_iter().zip(&poses).map(|(f, pose)| visibility::SweepRays::new(f, pose)).collect();
+    let (points, trees, clusters) = search_inputs(&frames);
+    let rays = sweep_rays(part, &poses);
     let axis = part.time_axis();
-    let times: Vec<f64> = (0..axis.frames()).map(|k| axis.frame_time(k)).collect();
+    let times = frame_times(&axis);
     let found = bodies::continue_bodies(
         priors,
         model.bodies(),
@@ -341,6 +334,25 @@ pub(crate) fn continue_window_bodies(
     let model = model.with_bodies(all);
     let free = network_free_points(&model, &points, &trees);
     Ok(model.with_free_points(free))
+}
+
+/// What the moving-body search reads of prepared frames: each frame's points, tree and clusters.
+fn search_inputs(frames: &[prepare::PreparedFrame]) -> (Vec<&[Point]>, Vec<&KdTree>, Vec<&[Vec<u32>]>) {
+    (
+        frames.iter().map(|f| f.full.points.as_slice()).collect(),
+        frames.iter().map(|f| &f.full.tree).collect(),
+        frames.iter().map(|f| f.full.clusters.as_slice()).collect(),
+    )
+}
+
+/// What each sweep's rays saw (its raw points, ground and far returns included, with its pose).
+fn sweep_rays(sequence: &Sequence, poses: &[Rigid]) -> Vec<visibility::SweepRays> {
+    sequence.frames.par_iter().zip(poses).map(|(f, pose)| visibility::SweepRays::new(f, pose)).collect()
+}
+
+/// Each frame's time on `axis` (s, or the frame index).
+fn frame_times(axis: &TimeAxis) -> Vec<f64> {
+    (0..axis.frames()).map(|k| axis.frame_time(k)).collect()
 }
 
 pub use crate::model::MAX_EXTRAPOLATION_S;
