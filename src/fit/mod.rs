@@ -336,8 +336,11 @@ pub(crate) fn continue_window_bodies(
     Ok(model.with_free_points(free))
 }
 
+/// Per frame: its points, their tree and their clusters (indices into the points).
+type SearchInputs<'a> = (Vec<&'a [Point]>, Vec<&'a KdTree>, Vec<&'a [Vec<u32>]>);
+
 /// What the moving-body search reads of prepared frames: each frame's points, tree and clusters.
-fn search_inputs(frames: &[prepare::PreparedFrame]) -> (Vec<&[Point]>, Vec<&KdTree>, Vec<&[Vec<u32>]>) {
+fn search_inputs(frames: &[prepare::PreparedFrame]) -> SearchInputs<'_> {
     (
         frames.iter().map(|f| f.full.points.as_slice()).collect(),
         frames.iter().map(|f| &f.full.tree).collect(),
