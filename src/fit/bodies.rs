@@ -5,7 +5,11 @@
 //! car its own track and drift along its flank. Here a car is one body:
 //!
 //! 1. **seeds**: every DBSCAN cluster of every frame is tested as the rigid tracks test it (one
-//!    rigid motion to the neighbouring frame explains it clearly better than standing still);
+//!    rigid motion to the neighbouring frame explains it clearly better than standing still),
+//!    then every *sparse* cluster: the far points (20 m and more from the sensor) that DBSCAN's
+//!    30 neighbours left out, clustered again with 10 (a car at 30 m is a few dozen points). A
+//!    sparse cluster only seeds; it joins other bodies as loose points, and a body from it is
+//!    kept only when the sensor also saw through the place it left;
 //! 2. **tracking by registration to the body's own model**: from the largest untaken seed, the
 //!    body is followed frame by frame to both ends of the sequence. Each step predicts the pose at
 //!    constant velocity, takes the frame's clusters that lie on the predicted body (association),
@@ -42,6 +46,7 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 
 use crate::geometry::Point;
+use crate::geometry::dbscan;
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::{Rigid, fit_planar_icp, fit_rigid_icp};
 use crate::model::MovingBody;
@@ -97,12 +102,49 @@ impl Default for BodyParams {
     }
 }
 
+/// A far car is a few dozen points of a sweep, too sparse for the clustering's 30 neighbours
+/// within 0.8 m (method.md's DBSCAN, which the multi-body loss keeps): the points no cluster
+/// holds are clustered once more with this many.
+pub const SPARSE_MIN_POINTS: usize = 10;
+
+/// Sparse clusters are looked for this far (m, along the ground) from the sensor and beyond.
+pub const SPARSE_MIN_RANGE_M: f32 = 20.0;
+
+/// Sparse clusters of a frame (indices into `points`): DBSCAN with radius `eps_m` and
+/// [`SPARSE_MIN_POINTS`] neighbours over the points that no cluster of `clusters` holds and
+/// that lie at least [`SPARSE_MIN_RANGE_M`] from the sensor (at `sensor_xy`, the coordinates
+/// of `points`), keeping the clusters of at least [`MIN_OBSERVED_POINTS`] points none of which
+/// is within `eps_m` of a held point. A far car's sweep.
+pub fn sparse_clusters(points: &[Point], clusters: &[Vec<u32>], sensor_xy: [f32; 2], eps_m: f32) -> Vec<Vec<u32>> {
+    let mut held = vec![false; points.len()];
+    for &i in clusters.iter().flatten() {
+        held[i as usize] = true;
+    }
+    let far2 = SPARSE_MIN_RANGE_M * SPARSE_MIN_RANGE_M;
+    let far = |p: &Point| (p[0] - sensor_xy[0]).powi(2) + (p[1] - sensor_xy[1]).powi(2) >= far2;
+    let loose: Vec<u32> = (0..points.len() as u32).filter(|&i| !held[i as usize] && far(&points[i as usize])).collect();
+    let loose_points: Vec<Point> = loose.iter().map(|&i| points[i as usize]).collect();
+    let labels = dbscan::dbscan(&loose_points, eps_m, SPARSE_MIN_POINTS);
+    // The fringe of a dense cluster (its sparse edge, which DBSCAN's 30 neighbours left out) is
+    // that cluster's, not an object of its own.
+    let held_points: Vec<Point> = (0..points.len()).filter(|&i| held[i]).map(|i| points[i]).collect();
+    let held_tree = KdTree::new(&held_points);
+    let eps2 = eps_m * eps_m;
+    dbscan::clusters(&labels)
+        .into_iter()
+        .filter(|c| c.len() >= MIN_OBSERVED_POINTS)
+        .map(|c| c.into_iter().map(|j| loose[j as usize]).collect::<Vec<u32>>())
+        .filter(|c| !c.iter().any(|&i| held_tree.nearest(&points[i as usize]).is_some_and(|h| h.dist2 <= eps2)))
+        .collect()
+}
+
 /// The second seed test compares frames this far apart.
 const SLOW_SEED_GAP: usize = 3;
 
 /// The moving bodies of a sequence. `frames[k]` are frame k's points in fit coordinates (ego
-/// motion removed) with `trees[k]` built over them, `clusters[k]` its DBSCAN clusters (indices
-/// into `frames[k]`), and `times[k]` its time (s, or the frame index). Deterministic: no
+/// motion removed) with `trees[k]` built over them, `clusters[k]` its clusters (indices into
+/// `frames[k]`): the first `dense_clusters[k]` DBSCAN's, the rest sparse ones
+/// ([`sparse_clusters`]), and `times[k]` its time (s, or the frame index). Deterministic: no
 /// randomness, and the result does not depend on the thread count.
 ///
 /// `rays[k]`, when given, are what sweep k's rays saw (its raw points, ground included, with its
@@ -119,6 +161,7 @@ pub fn find_moving_bodies(
     frames: &[&[Point]],
     trees: &[&KdTree],
     clusters: &[&[Vec<u32>]],
+    dense_clusters: &[usize],
     rays: Option<&[SweepRays]>,
     times: &[f64],
     max_extrapolation: f64,
@@ -149,8 +192,9 @@ pub fn find_moving_bodies(
             return None;
         }
     }
-    // Largest seeds first: they give the body model the most of its shape to start from.
-    seeds.sort_by_key(|&(k, c, _, _)| (std::cmp::Reverse(clusters[k][c].len()), k, c));
+    // Largest seeds first: they give the body model the most of its shape to start from. Sparse
+    // clusters come after every DBSCAN cluster: they seed only what the dense ones left.
+    seeds.sort_by_key(|&(k, c, _, _)| (c >= dense_clusters[k], std::cmp::Reverse(clusters[k][c].len()), k, c));
     let boxes = cluster_boxes(frames, clusters);
     let mut taken: Vec<Vec<bool>> = clusters.iter().map(|c| vec![false; c.len()]).collect();
     let labels = cluster_labels(frames, clusters);
@@ -164,6 +208,7 @@ pub fn find_moving_bodies(
             frames,
             trees,
             clusters,
+            dense: dense_clusters,
             boxes: &boxes,
             labels: &labels,
             taken: &taken,
@@ -177,6 +222,13 @@ pub fn find_moving_bodies(
             // Still after all, or a seed step that led the track astray: it seeds no other
             // body, but stays free to join one found from a better seed.
             tried[k][c] = true;
+            if c >= dense_clusters[k] {
+                // Nor do the other sparse pieces of the same far structure (a building's wall
+                // seen in every sweep): each would be tracked through every frame again.
+                for &(j, cluster) in tracked.clusters.iter().filter(|&&(j, cluster)| cluster >= dense_clusters[j]) {
+                    tried[j][cluster] = true;
+                }
+            }
             continue;
         }
         for &(j, cluster) in &tracked.clusters {
@@ -215,6 +267,7 @@ pub fn continue_bodies(
     frames: &[&[Point]],
     trees: &[&KdTree],
     clusters: &[&[Vec<u32>]],
+    dense_clusters: &[usize],
     rays: Option<&[SweepRays]>,
     times: &[f64],
     max_extrapolation: f64,
@@ -250,6 +303,7 @@ pub fn continue_bodies(
             frames,
             trees,
             clusters,
+            dense: dense_clusters,
             boxes: &boxes,
             labels: &labels,
             taken: &taken,
@@ -395,6 +449,9 @@ struct Scene<'a> {
     frames: &'a [&'a [Point]],
     trees: &'a [&'a KdTree],
     clusters: &'a [&'a [Vec<u32>]],
+    /// Per frame, how many of its clusters are DBSCAN's; the rest are sparse clusters
+    /// ([`sparse_clusters`]), seeds only.
+    dense: &'a [usize],
     /// Each cluster's box.
     boxes: &'a [Vec<Aabb>],
     /// Per frame and point: its cluster, or -1.
@@ -420,6 +477,7 @@ impl Scene<'_> {
             j,
             self.frames,
             self.clusters,
+            self.dense[j],
             self.boxes,
             self.taken,
             &self.labels[j],
@@ -618,7 +676,7 @@ impl BodyTrack {
             let posed_box = Aabb::of(self.model.iter().map(|p| self.poses[j].apply(p)).collect::<Vec<_>>().iter());
             for (i, p) in s.frames[j].iter().enumerate() {
                 let label = s.labels[j][i];
-                let free = label < 0 || !s.taken[j][label as usize];
+                let free = label < 0 || label as usize >= s.dense[j] || !s.taken[j][label as usize];
                 let inside = (0..3).all(|c| {
                     p[c] >= posed_box.min[c] - params.fine_corr_dist_m
                         && p[c] <= posed_box.max[c] + params.fine_corr_dist_m
@@ -796,7 +854,12 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
         // Evidence from outside the body's own registrations, last as it costs the most: the
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
-        && s.rays.is_none_or(|r| !place_still_occupied(&src, k, &poses, centre, &model_tree, r));
+        // A sparse seed is a few far points: the sensor must also have clearly seen through the
+        // place it left.
+        && s.rays.is_none_or(|r| {
+            let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r);
+            !place.still_occupied() && (c < s.dense[k] || place.clearly_left())
+        });
     Tracked { body, clusters: clusters_on_body, moving }
 }
 
@@ -949,58 +1012,84 @@ const LEFT_PLACE_MARGIN_M: f64 = 1.0;
 /// ...and a seed point at the frames where it lies farther than this (m) from the body's model
 /// at the body's pose there.
 const VACATED_M: f32 = 0.5;
-/// [`place_still_occupied`] needs at least this many seed points seen in their place before it
-/// speaks: a few rays ending near them by chance are no evidence.
+/// [`PlaceTallies::still_occupied`] needs at least this many seed points seen in their place
+/// before it speaks: a few rays ending near them by chance are no evidence.
 const LEFT_PLACE_MIN_SEEN: usize = 20;
+/// A body from a sparse cluster (a few dozen far points, weak evidence of its own) is kept only
+/// when the sensor saw through the place it left at least this many times...
+const SPARSE_MIN_PASSED: usize = 10;
+/// ...and found its seed's points there at most one in this many times as often.
+const SPARSE_PASSED_PER_SEEN: usize = 3;
 
-/// Whether the sensor still finds the seed `src` (a body's points at frame `k`, fit
-/// coordinates) in the place the body's motion says it left: more of the seed's points left
-/// standing are seen there (a ray ends on them) than passed through (a ray goes on past them).
-/// A moving road user leaves empty space where it was, or space hidden behind itself; a static
-/// structure that the registrations slid along (a parked car passed alongside, whose visible
-/// part moves with the sensor; a building's corner) is still there.
+/// How the sensor saw the seed `src` (a body's points at frame `k`, fit coordinates) in the
+/// place the body's motion says it left. A moving road user leaves empty space where it was, or
+/// space hidden behind itself; a static structure that the registrations slid along (a parked
+/// car passed alongside, whose visible part moves with the sensor; a building's corner) is still
+/// there.
 ///
-/// Two tallies, either of which can speak: over the frames where the body's centre (`centre`,
-/// moved by `poses`: seed frame -> each frame) is well away from the seed's place (see
-/// [`LEFT_PLACE_MARGIN_M`]), every seed point; over all frames, the seed points the body's
-/// model (`model_tree`, seed-frame coordinates) no longer covers there (see [`VACATED_M`]): a
-/// slide shorter than the body's own length leaves only its ends. On the simulator's bodies
-/// (docs/benchmarks.md section 28) no moving body had more than a third as many seed points
-/// seen as passed through in either tally.
-fn place_still_occupied(
-    src: &[Point],
-    k: usize,
-    poses: &[Rigid],
-    centre: [f64; 3],
-    model_tree: &KdTree,
-    rays: &[SweepRays],
-) -> bool {
-    let away_m = horizontal_length_m(src) + LEFT_PLACE_MARGIN_M;
-    // (seen, passed) over the frames the body is away, and over the points it vacated.
-    let (mut away, mut vacated) = ((0usize, 0usize), (0usize, 0usize));
-    for j in (0..poses.len().min(rays.len())).filter(|&j| j != k) {
-        let c = poses[j].apply_f64(centre);
-        let is_away = (c[0] - centre[0]).hypot(c[1] - centre[1]) >= away_m;
-        let to_body = poses[j].inverse();
-        for p in src {
-            let covered = model_tree.nearest(&to_body.apply(p)).is_some_and(|h| h.dist2 <= VACATED_M * VACATED_M);
-            if !is_away && covered {
-                continue;
-            }
-            let (seen, passed) = match rays[j].sight(p, RAY_MARGIN_M) {
-                Sight::Seen => (1, 0),
-                Sight::Passed => (0, 1),
-                Sight::Hidden | Sight::Unknown => continue,
-            };
-            if is_away {
-                away = (away.0 + seen, away.1 + passed);
-            }
-            if !covered {
-                vacated = (vacated.0 + seen, vacated.1 + passed);
+/// Two tallies of (seen: a ray ends on the point, passed: a ray goes on past it): over the
+/// frames where the body's centre (`centre`, moved by `poses`: seed frame -> each frame) is
+/// well away from the seed's place (see [`LEFT_PLACE_MARGIN_M`]), every seed point; over all
+/// frames, the seed points the body's model (`model_tree`, seed-frame coordinates) no longer
+/// covers there (see [`VACATED_M`]): a slide shorter than the body's own length leaves only its
+/// ends. On the simulator's bodies (docs/benchmarks.md section 28) no moving body had more than
+/// a third as many seed points seen as passed through in either tally.
+struct PlaceTallies {
+    away: (usize, usize),
+    vacated: (usize, usize),
+}
+
+impl PlaceTallies {
+    fn new(
+        src: &[Point],
+        k: usize,
+        poses: &[Rigid],
+        centre: [f64; 3],
+        model_tree: &KdTree,
+        rays: &[SweepRays],
+    ) -> Self {
+        let away_m = horizontal_length_m(src) + LEFT_PLACE_MARGIN_M;
+        let (mut away, mut vacated) = ((0usize, 0usize), (0usize, 0usize));
+        for j in (0..poses.len().min(rays.len())).filter(|&j| j != k) {
+            let c = poses[j].apply_f64(centre);
+            let is_away = (c[0] - centre[0]).hypot(c[1] - centre[1]) >= away_m;
+            let to_body = poses[j].inverse();
+            for p in src {
+                let covered = model_tree.nearest(&to_body.apply(p)).is_some_and(|h| h.dist2 <= VACATED_M * VACATED_M);
+                if !is_away && covered {
+                    continue;
+                }
+                let (seen, passed) = match rays[j].sight(p, RAY_MARGIN_M) {
+                    Sight::Seen => (1, 0),
+                    Sight::Passed => (0, 1),
+                    Sight::Hidden | Sight::Unknown => continue,
+                };
+                if is_away {
+                    away = (away.0 + seen, away.1 + passed);
+                }
+                if !covered {
+                    vacated = (vacated.0 + seen, vacated.1 + passed);
+                }
             }
         }
+        Self { away, vacated }
     }
-    [away, vacated].iter().any(|&(seen, passed)| seen >= LEFT_PLACE_MIN_SEEN && seen > passed)
+
+    /// Whether the sensor still finds the seed in its place: in either tally at least
+    /// [`LEFT_PLACE_MIN_SEEN`] points seen, and more seen than passed through.
+    fn still_occupied(&self) -> bool {
+        [self.away, self.vacated].iter().any(|&(seen, passed)| seen >= LEFT_PLACE_MIN_SEEN && seen > passed)
+    }
+
+    /// Whether the sensor clearly saw through the place: in either tally at least
+    /// [`SPARSE_MIN_PASSED`] points passed through and at most a [`SPARSE_PASSED_PER_SEEN`]-th
+    /// as many seen. A far wall's sparse piece that the registrations slid along itself gives no
+    /// such evidence.
+    fn clearly_left(&self) -> bool {
+        [self.away, self.vacated]
+            .iter()
+            .any(|&(seen, passed)| passed >= SPARSE_MIN_PASSED && SPARSE_PASSED_PER_SEEN * seen <= passed)
+    }
 }
 
 /// A member point is still world when, left where it is, it lies this close (m) to every
@@ -1220,16 +1309,17 @@ fn associate_widening(
     j: usize,
     frames: &[&[Point]],
     clusters: &[&[Vec<u32>]],
+    dense: usize,
     boxes: &[Vec<Aabb>],
     taken: &[Vec<bool>],
     labels: &[i32],
     params: &BodyParams,
 ) -> Picked {
-    let picked = associate(guess, model, j, frames, clusters, boxes, taken, labels, params, 1.0);
+    let picked = associate(guess, model, j, frames, clusters, dense, boxes, taken, labels, params, 1.0);
     if picked.points.len() >= MIN_OBSERVED_POINTS {
         return picked;
     }
-    associate(guess, model, j, frames, clusters, boxes, taken, labels, params, 2.0)
+    associate(guess, model, j, frames, clusters, dense, boxes, taken, labels, params, 2.0)
 }
 
 /// The points of frame `j` on the body's `model` at pose `guess`: every untaken cluster with at
@@ -1244,6 +1334,7 @@ fn associate(
     j: usize,
     frames: &[&[Point]],
     clusters: &[&[Vec<u32>]],
+    dense: usize,
     boxes: &[Vec<Aabb>],
     taken: &[Vec<bool>],
     labels: &[i32],
@@ -1260,7 +1351,9 @@ fn associate(
     // A cluster much larger than the body is not the body (a wall it drives past): only its
     // points near the body may join, as loose points.
     let max_diagonal_m = (posed_box.diagonal_m() + MAX_GROWTH_M).min(MAX_BODY_DIAGONAL_M);
-    for (ci, cluster) in clusters[j].iter().enumerate() {
+    // Sparse clusters (past `dense`) join as loose points only: a few stray points of a wall
+    // beside the body must not come in whole.
+    for (ci, cluster) in clusters[j].iter().enumerate().take(dense) {
         if taken[j][ci] || !boxes[j][ci].overlaps(&posed_box, radius_m) || boxes[j][ci].diagonal_m() > max_diagonal_m {
             continue;
         }
@@ -1277,7 +1370,9 @@ fn associate(
     let near_box = Aabb { min: posed_box.min.map(|v| v - loose_m), max: posed_box.max.map(|v| v + loose_m) };
     for (i, p) in frames[j].iter().enumerate() {
         let label = labels[i];
-        let free = label < 0 || !(whole[label as usize] || taken[j][label as usize]);
+        // A sparse cluster's points stay loose points for every body (a body holding a sparse
+        // cluster only keeps it from seeding another).
+        let free = label < 0 || label as usize >= dense || !(whole[label as usize] || taken[j][label as usize]);
         if free
             && (0..3).all(|c| p[c] >= near_box.min[c] && p[c] <= near_box.max[c])
             && posed_tree.nearest(p).is_some_and(|h| h.dist2 <= loose2)
@@ -1286,6 +1381,13 @@ fn associate(
         }
     }
     picked.points.sort_unstable();
+    // The sparse clusters the loose points came from are the body's too: none of them is left
+    // to seed a second body of the same car.
+    let sparse: HashSet<usize> =
+        picked.points.iter().map(|&i| labels[i as usize]).filter(|&l| l >= dense as i32).map(|l| l as usize).collect();
+    let mut sparse: Vec<usize> = sparse.into_iter().collect();
+    sparse.sort_unstable();
+    picked.clusters.extend(sparse);
     picked
 }
 
@@ -1871,7 +1973,8 @@ mod tests {
         let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
         let trees: Vec<&KdTree> = trees.iter().collect();
         let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
-        find_moving_bodies(&frames, &trees, &clusters, None, &s.times, 3.0, params, &mut |_, _| {
+        let dense: Vec<usize> = clusters.iter().map(|c| c.len()).collect();
+        find_moving_bodies(&frames, &trees, &clusters, &dense, None, &s.times, 3.0, params, &mut |_, _| {
             ControlFlow::Continue(())
         })
         .expect("never stopped")
@@ -2301,13 +2404,13 @@ mod tests {
             (end[0] - centre[0]).hypot(end[1] - centre[1]) > horizontal_length_m(&src) + LEFT_PLACE_MARGIN_M + 3.0,
             "the car must be well away from its place in the last frames"
         );
-        assert!(!place_still_occupied(&src, 0, &poses, centre, &KdTree::new(&src), &rays));
+        assert!(!PlaceTallies::new(&src, 0, &poses, centre, &KdTree::new(&src), &rays).still_occupied());
         // The parked car made to slide 0.8 m a frame along the road is still seen in its place.
         let slide: Vec<Rigid> =
             (0..frames).map(|j| Rigid { translation: [0.8 * j as f64, 0.0, 0.0], ..Rigid::identity() }).collect();
         let parked_centre = centroid(&still_src);
         let parked_model = KdTree::new(&still_src);
-        assert!(place_still_occupied(&still_src, 0, &slide, parked_centre, &parked_model, &rays));
+        assert!(PlaceTallies::new(&still_src, 0, &slide, parked_centre, &parked_model, &rays).still_occupied());
         // Made to creep along the road by less than its own length, its ends are still seen where
         // the creep says they left.
         let creep: Vec<Rigid> =
@@ -2316,10 +2419,10 @@ mod tests {
             0.15 * ((frames - 1) as f64) < horizontal_length_m(&still_src) + LEFT_PLACE_MARGIN_M,
             "the creep must never take it away from its place: only the vacated tally speaks"
         );
-        assert!(place_still_occupied(&still_src, 0, &creep, parked_centre, &parked_model, &rays));
+        assert!(PlaceTallies::new(&still_src, 0, &creep, parked_centre, &parked_model, &rays).still_occupied());
         // Left in its place it never leaves it: no evidence either way.
         let stay = vec![Rigid::identity(); frames];
-        assert!(!place_still_occupied(&still_src, 0, &stay, parked_centre, &parked_model, &rays));
+        assert!(!PlaceTallies::new(&still_src, 0, &stay, parked_centre, &parked_model, &rays).still_occupied());
     }
 
     #[test]
@@ -2472,6 +2575,103 @@ mod tests {
         }
     }
 
+    /// `s` with a fourth car-sized box far out (30 m from the origin, the sensor), crossing at
+    /// 6 m/s and seen by `points` points a sweep on its near side and top: too few for DBSCAN's
+    /// 30 neighbours within 0.8 m, in no cluster. Its truth is `s.truth[3]`.
+    fn with_far_crossing_box(s: &Scene, points: usize) -> Scene {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut out = Scene {
+            frames: s.frames.clone(),
+            clusters: s.clusters.clone(),
+            times: s.times.clone(),
+            truth: s.truth.clone(),
+        };
+        out.truth.push(Vec::new());
+        for (k, frame) in out.frames.iter_mut().enumerate() {
+            let motion = planar(-12.0 + 6.0 * s.times[k], 30.0, 0.0);
+            frame.extend((0..points).map(|_| {
+                let (x, u) = (rng.random_range(0.0..4.2f32), rng.random_range(0.0..1.0f32));
+                // The face towards the sensor (y = 0) and the top (z = 1.5), by area.
+                let p =
+                    if u < 0.45 { [x, 0.0, rng.random_range(0.0..1.5)] } else { [x, rng.random_range(0.0..1.8), 1.5] };
+                motion.apply(&p)
+            }));
+            out.truth[3].push(motion);
+        }
+        out
+    }
+
+    #[test]
+    fn a_far_car_too_sparse_for_the_clustering_is_a_sparse_cluster_and_one_body_tracked_within_two_decimetres() {
+        let t = 12;
+        let s = with_far_crossing_box(&scene(t), 100);
+        let eps_m = 0.8;
+        let far = |p: &Point| p[1] > 29.0;
+        for (frame, clusters) in s.frames.iter().zip(&s.clusters) {
+            // method.md's clustering finds nothing of it...
+            let far_points: Vec<Point> = frame.iter().copied().filter(far).collect();
+            assert!(dbscan::dbscan(&far_points, eps_m, 30).iter().all(|&l| l < 0));
+            // ...the sparse clustering finds it, whole but for a few stray points, and nothing
+            // else: the wall's and the near boxes' points are all in clusters already.
+            let sparse = sparse_clusters(frame, clusters, [0.0, 0.0], eps_m);
+            assert_eq!(sparse.len(), 1, "{:?}", sparse.iter().map(Vec::len).collect::<Vec<_>>());
+            assert!(sparse[0].iter().all(|&i| far(&frame[i as usize])));
+            assert!(sparse[0].len() >= 90, "{} of 100", sparse[0].len());
+        }
+        let trees: Vec<KdTree> = s.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let dense: Vec<usize> = s.clusters.iter().map(Vec::len).collect();
+        let with_sparse: Vec<Vec<Vec<u32>>> = s
+            .frames
+            .iter()
+            .zip(&s.clusters)
+            .map(|(f, c)| c.iter().cloned().chain(sparse_clusters(f, c, [0.0, 0.0], eps_m)).collect())
+            .collect();
+        // The sensor (at the origin, identity poses) sees each sweep's points and, behind the far
+        // box, a wall at y = 45 m where the box does not hide it: through the place it left.
+        let backdrop: Vec<Point> =
+            (0..400).flat_map(|i| (0..30).map(move |e| [-40.0 + 0.15 * i as f32, 45.0, 0.15 * e as f32])).collect();
+        let azimuth = |p: &Point| p[1].atan2(p[0]);
+        let elevation = |p: &Point| p[2].atan2(p[0].hypot(p[1]));
+        let rays: Vec<SweepRays> = s
+            .frames
+            .iter()
+            .map(|f| {
+                let far_box: Vec<&Point> = f.iter().filter(|p| far(p)).collect();
+                let (lo, hi) =
+                    far_box.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(azimuth(p)), hi.max(azimuth(p))));
+                let top = far_box.iter().map(|p| elevation(p)).fold(f32::MIN, f32::max);
+                let seen = backdrop.iter().filter(|p| !((lo..=hi).contains(&azimuth(p)) && elevation(p) <= top));
+                let points: Vec<Point> = f.iter().chain(seen).copied().collect();
+                SweepRays::new(&points, &Rigid::identity())
+            })
+            .collect();
+        let search = |clusters: &[Vec<Vec<u32>>]| {
+            let clusters: Vec<&[Vec<u32>]> = clusters.iter().map(Vec::as_slice).collect();
+            let params = BodyParams::default();
+            find_moving_bodies(&frames, &trees, &clusters, &dense, Some(&rays), &s.times, 3.0, &params, &mut |_, _| {
+                ControlFlow::Continue(())
+            })
+            .expect("never stopped")
+        };
+        let on_far_box = |b: &MovingBody| centroid(&b.members[0])[1] > 29.0;
+        // Without the sparse clusters there is no seed on it.
+        assert!(!search(&s.clusters).iter().any(on_far_box));
+        let bodies = search(&with_sparse);
+        assert_eq!(bodies.len(), 4, "the three near boxes and the far one");
+        let far_bodies: Vec<&MovingBody> = bodies.iter().filter(|b| on_far_box(b)).collect();
+        assert_eq!(far_bodies.len(), 1, "one body of the far box");
+        let body = far_bodies[0];
+        assert!(body.observed.iter().all(|&o| o), "seen in every frame");
+        // 100 points a sweep on 14 m^2 lie about 0.4 m apart: within half that at every frame
+        // (the corners are up to 4.6 m from the centre, where a 0.02 rad yaw error is 0.09 m).
+        for j in 0..t {
+            let err = corner_error_m(&s, body, 3, j);
+            assert!(err < 0.2, "frame {j}: corner {err:.3} m off");
+        }
+    }
+
     /// `s` with the straight box (box 0) seen by `sparse_points` of its points from frame
     /// `from` on (none with 0), in no cluster: too few for the search to seed a body from.
     fn thinned_box_zero(s: &Scene, from: usize, sparse_points: usize) -> Scene {
@@ -2503,6 +2703,7 @@ mod tests {
         let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
         let trees: Vec<&KdTree> = trees.iter().collect();
         let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
+        let dense: Vec<usize> = clusters.iter().map(|c| c.len()).collect();
         let params = BodyParams::default();
         let existing = bodies_of(&s, &params);
         // The frames' own search has no body for box 0 after `from`: 25 loose points a sweep.
@@ -2520,6 +2721,7 @@ mod tests {
             &frames,
             &trees,
             &clusters,
+            &dense,
             None,
             &s.times,
             3.0,
@@ -2554,6 +2756,7 @@ mod tests {
             &frames,
             &trees,
             &clusters,
+            &dense,
             None,
             &gone.times,
             3.0,

@@ -262,10 +262,13 @@ pub(crate) fn fit_single(
         // What each sweep's rays saw, ground and far returns included: a body's registration
         // along its flank is checked against where the sensor looked through.
         let rays: Option<Vec<visibility::SweepRays>> = model.frame_poses().map(|poses| sweep_rays(sequence, poses));
+        let (with_sparse, dense) = body_clusters(&points, &clusters, model.frame_poses(), params.dbscan_eps_m);
+        let clusters: Vec<&[Vec<u32>]> = with_sparse.iter().map(Vec::as_slice).collect();
         let found = bodies::find_moving_bodies(
             &points,
             &trees,
             &clusters,
+            &dense,
             rays.as_deref(),
             &times,
             horizon,
@@ -312,12 +315,15 @@ pub(crate) fn continue_window_bodies(
     let rays = sweep_rays(part, &poses);
     let axis = part.time_axis();
     let times = frame_times(&axis);
+    let (with_sparse, dense) = body_clusters(&points, &clusters, Some(&poses), params.dbscan_eps_m);
+    let clusters: Vec<&[Vec<u32>]> = with_sparse.iter().map(Vec::as_slice).collect();
     let found = bodies::continue_bodies(
         priors,
         model.bodies(),
         &points,
         &trees,
         &clusters,
+        &dense,
         Some(&rays),
         &times,
         extrapolation_horizon(&axis),
@@ -346,6 +352,28 @@ fn search_inputs(frames: &[prepare::PreparedFrame]) -> SearchInputs<'_> {
         frames.iter().map(|f| &f.full.tree).collect(),
         frames.iter().map(|f| f.full.clusters.as_slice()).collect(),
     )
+}
+
+/// The clusters the moving-body search looks at, per frame: its DBSCAN clusters, then the sparse
+/// clusters of the far points they leave out ([`bodies::sparse_clusters`]; only with `poses`,
+/// which place the sensor), with the count of the DBSCAN ones.
+type BodyClusters = (Vec<Vec<Vec<u32>>>, Vec<usize>);
+
+/// See [`BodyClusters`].
+fn body_clusters(points: &[&[Point]], clusters: &[&[Vec<u32>]], poses: Option<&[Rigid]>, eps_m: f32) -> BodyClusters {
+    let dense = clusters.iter().map(|c| c.len()).collect();
+    let all = (0..points.len())
+        .into_par_iter()
+        .map(|k| {
+            let mut all = clusters[k].to_vec();
+            if let Some(sensor) = poses.map(|p| p[k].translation) {
+                let sensor_xy = [sensor[0] as f32, sensor[1] as f32];
+                all.extend(bodies::sparse_clusters(points[k], clusters[k], sensor_xy, eps_m));
+            }
+            all
+        })
+        .collect();
+    (all, dense)
 }
 
 /// What each sweep's rays saw (its raw points, ground and far returns included, with its pose).
