@@ -262,7 +262,7 @@ pub(crate) fn fit_single(
         // What each sweep's rays saw, ground and far returns included: a body's registration
         // along its flank is checked against where the sensor looked through.
         let rays: Option<Vec<visibility::SweepRays>> = model.frame_poses().map(|poses| sweep_rays(sequence, poses));
-        let (with_sparse, dense) = body_clusters(&points, &clusters, model.frame_poses(), params.dbscan_eps_m);
+        let (with_sparse, dense) = body_clusters(&points, &trees, &clusters, model.frame_poses(), params.dbscan_eps_m);
         let clusters: Vec<&[Vec<u32>]> = with_sparse.iter().map(Vec::as_slice).collect();
         let found = bodies::find_moving_bodies(
             &points,
@@ -315,7 +315,7 @@ pub(crate) fn continue_window_bodies(
     let rays = sweep_rays(part, &poses);
     let axis = part.time_axis();
     let times = frame_times(&axis);
-    let (with_sparse, dense) = body_clusters(&points, &clusters, Some(&poses), params.dbscan_eps_m);
+    let (with_sparse, dense) = body_clusters(&points, &trees, &clusters, Some(&poses), params.dbscan_eps_m);
     let clusters: Vec<&[Vec<u32>]> = with_sparse.iter().map(Vec::as_slice).collect();
     let found = bodies::continue_bodies(
         priors,
@@ -360,7 +360,13 @@ fn search_inputs(frames: &[prepare::PreparedFrame]) -> SearchInputs<'_> {
 type BodyClusters = (Vec<Vec<Vec<u32>>>, Vec<usize>);
 
 /// See [`BodyClusters`].
-fn body_clusters(points: &[&[Point]], clusters: &[&[Vec<u32>]], poses: Option<&[Rigid]>, eps_m: f32) -> BodyClusters {
+fn body_clusters(
+    points: &[&[Point]],
+    trees: &[&KdTree],
+    clusters: &[&[Vec<u32>]],
+    poses: Option<&[Rigid]>,
+    eps_m: f32,
+) -> BodyClusters {
     let dense = clusters.iter().map(|c| c.len()).collect();
     let all = (0..points.len())
         .into_par_iter()
@@ -368,7 +374,7 @@ fn body_clusters(points: &[&[Point]], clusters: &[&[Vec<u32>]], poses: Option<&[
             let mut all = clusters[k].to_vec();
             if let Some(sensor) = poses.map(|p| p[k].translation) {
                 let sensor_xy = [sensor[0] as f32, sensor[1] as f32];
-                all.extend(bodies::sparse_clusters(points[k], clusters[k], sensor_xy, eps_m));
+                all.extend(bodies::sparse_clusters(points[k], trees[k], clusters[k], sensor_xy, eps_m));
             }
             all
         })
