@@ -1992,12 +1992,9 @@ mod tests {
     /// A wall, and three car-sized boxes: one driving straight at 10 m/s, one turning at
     /// 0.3 rad/s at 8 m/s, one accelerating from 2 m/s at 3 m/s^2. 10 Hz.
     fn scene(frames: usize) -> Scene {
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        let car = [4.2f32, 1.8, 1.5];
-        let mut s = Scene { frames: Vec::new(), clusters: Vec::new(), times: Vec::new(), truth: vec![Vec::new(); 3] };
-        for k in 0..frames {
+        let motions_at = |k: usize| {
             let t = 0.1 * k as f64;
-            let motions = [
+            [
                 planar(-10.0 + 10.0 * t, 0.0, 0.0),
                 {
                     // Constant turn rate w at speed v along an arc starting at (0, 10), heading +x.
@@ -2006,24 +2003,10 @@ mod tests {
                     planar(v / w * yaw.sin(), 10.0 + v / w * (1.0 - yaw.cos()), yaw)
                 },
                 planar(2.0 * t + 1.5 * t * t, -8.0, 0.0),
-            ];
-            let mut frame = Vec::new();
-            let mut clusters = Vec::new();
-            let wall: Vec<Point> =
-                box_surface(&mut rng, 800, [40.0, 0.5, 3.0]).iter().map(|p| [p[0] - 20.0, p[1] + 20.0, p[2]]).collect();
-            clusters.push((0..wall.len() as u32).collect());
-            frame.extend(wall);
-            for (b, m) in motions.iter().enumerate() {
-                let start = frame.len() as u32;
-                frame.extend(box_surface(&mut rng, 500, car).iter().map(|p| m.apply(p)));
-                clusters.push((start..frame.len() as u32).collect());
-                s.truth[b].push(*m);
-            }
-            s.frames.push(frame);
-            s.clusters.push(clusters);
-            s.times.push(t);
-        }
-        s
+            ]
+        };
+        let motions: Vec<Vec<Rigid>> = (0..3).map(|b| (0..frames).map(|k| motions_at(k)[b]).collect()).collect();
+        boxes_scene(11, &motions, [4.2, 1.8, 1.5], &|_| 500, &|_| false)
     }
 
     fn bodies_of(s: &Scene, params: &BodyParams) -> Vec<MovingBody> {
@@ -2210,16 +2193,18 @@ mod tests {
         assert!(bodies_of(&s, &BodyParams::default()).is_empty());
     }
 
-    /// The wall of [`scene`] and one box of `size` per motion of `motions` (a frame's motion per
-    /// box), `points[k]` points on each box in frame k; clusters: the wall, and the boxes that
-    /// `merged(k)` says DBSCAN joined (one cluster) or each box on its own.
+    /// A wall, and one box of `size` per motion of `motions` (a frame's motion per box),
+    /// `points[k]` points on each box in frame k, resampled from `rng_seed`; clusters: the wall,
+    /// and the boxes that `merged(k)` says DBSCAN joined (one cluster) or each box on its own.
+    /// 10 Hz.
     fn boxes_scene(
+        rng_seed: u64,
         motions: &[Vec<Rigid>],
         size: [f32; 3],
         points: &dyn Fn(usize) -> usize,
         merged: &dyn Fn(usize) -> bool,
     ) -> Scene {
-        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
         let frames = motions[0].len();
         let mut s = Scene { frames: Vec::new(), clusters: Vec::new(), times: Vec::new(), truth: motions.to_vec() };
         for k in 0..frames {
@@ -2253,7 +2238,7 @@ mod tests {
         let driving: Vec<Rigid> = (0..t).map(|k| planar(-10.0 + k as f64, 0.0, 0.0)).collect();
         let parked = vec![planar(0.0, 2.5, 0.0); t];
         let side_by_side = |k: usize| (driving[k].translation[0]).abs() < 4.2;
-        let s = boxes_scene(&[driving.clone(), parked], [4.2, 1.8, 1.5], &|_| 500, &side_by_side);
+        let s = boxes_scene(21, &[driving.clone(), parked], [4.2, 1.8, 1.5], &|_| 500, &side_by_side);
         assert_eq!((0..t).filter(|&k| side_by_side(k)).count(), 9);
         let bodies = bodies_of(&s, &BodyParams::default());
         assert_eq!(bodies.len(), 1, "one body, the driving car");
@@ -2271,7 +2256,7 @@ mod tests {
     #[test]
     fn a_slow_walker_seen_densely_only_in_its_first_frames_is_a_body_within_a_decimetre() {
         // A pedestrian at 1.3 m/s, seen densely in frames 1-3 only (through a gap between parked
-        // cars: 1,100 points in frame 2, the seed, 1,000 in frames 1 and 3, 40 in the others).
+        // cars: 1,100 points in frame 2, the seed, 1,000 in frames 1 and 3, 15 in the others).
         // The frames next to the seed, where a walker has not yet left its own outline, hold
         // most of its points but cannot show motion: they must not outweigh the frames that do
         // (seed 153's pedestrian had no body).
@@ -2283,7 +2268,7 @@ mod tests {
             1 | 3 => 1000,
             _ => 15,
         };
-        let s = boxes_scene(std::slice::from_ref(&walker), size, &points, &|_| false);
+        let s = boxes_scene(21, std::slice::from_ref(&walker), size, &points, &|_| false);
         let bodies = bodies_of(&s, &BodyParams::default());
         assert_eq!(bodies.len(), 1, "one body, the walker");
         let body = &bodies[0];
