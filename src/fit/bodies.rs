@@ -418,6 +418,14 @@ impl Aabb {
         (0..3).map(|c| (self.max[c] - self.min[c]).powi(2)).sum::<f32>().sqrt()
     }
 
+    /// The smallest box holding both.
+    fn union(&self, other: &Aabb) -> Aabb {
+        Aabb {
+            min: std::array::from_fn(|i| self.min[i].min(other.min[i])),
+            max: std::array::from_fn(|i| self.max[i].max(other.max[i])),
+        }
+    }
+
     fn overlaps(&self, other: &Aabb, margin_m: f32) -> bool {
         (0..3).all(|c| self.min[c] - margin_m <= other.max[c] && other.min[c] - margin_m <= self.max[c])
     }
@@ -707,9 +715,67 @@ impl BodyTrack {
             }
             picked.points.sort_unstable();
         }
+        self.take_sparse_neighbours(s);
         for j in (0..t).filter(|&j| self.observed[j]) {
             let sweeps = still_test_sweeps(j, &self.poses, s.trees);
             self.on_body[j].points.retain(|&i| !still_member(&s.frames[j][i as usize], &sweeps));
+        }
+    }
+
+    /// A far car's laser rings fall on different parts of it: the ring on its bumper lies a
+    /// metre nearer than the one on its rear window, and the two make separate sparse clusters.
+    /// A body holds only the rings its model grew from; a sparse cluster of an observed frame
+    /// that lies beside the body (within [`SPARSE_NEIGHBOUR_GAP_M`] of its box, the two within
+    /// a car's size together) and moves with it (carried by the body's motion to the nearest
+    /// observed frame, it fits that frame clearly better than left standing: the seed test)
+    /// joins it whole.
+    fn take_sparse_neighbours(&mut self, s: &Scene<'_>) {
+        let t = s.len();
+        let seed = &s.params.seed;
+        let observed: Vec<usize> = (0..t).filter(|&j| self.observed[j]).collect();
+        let mut scratch = DistanceScratch::default();
+        for (n, &j) in observed.iter().enumerate() {
+            let Some(&other) = observed.get(n + 1).or_else(|| n.checked_sub(1).map(|m| &observed[m])) else {
+                continue;
+            };
+            let picked = &self.on_body[j];
+            if picked.points.is_empty() {
+                continue;
+            }
+            let body_box = Aabb::of(picked.points.iter().map(|&i| &s.frames[j][i as usize]));
+            let held: HashSet<u32> = picked.points.iter().copied().collect();
+            let step = self.poses[other].compose(&self.poses[j].inverse());
+            let mut joining = Vec::new();
+            for ci in s.dense[j]..s.clusters[j].len() {
+                let cluster = &s.clusters[j][ci];
+                let cluster_box = s.boxes[j][ci];
+                if s.taken[j][ci]
+                    || cluster.iter().all(|i| held.contains(i))
+                    || !cluster_box.overlaps(&body_box, SPARSE_NEIGHBOUR_GAP_M)
+                    || body_box.union(&cluster_box).diagonal_m() > MAX_SPARSE_BODY_DIAGONAL_M
+                {
+                    continue;
+                }
+                let src = cluster_subsample(s.frames[j], cluster, seed.max_track_points);
+                let cap_m = seed.max_corr_dist_m;
+                let still = mean_distance_m(&src, &Rigid::identity(), s.trees[other], cap_m, &mut scratch);
+                let moved = mean_distance_m(&src, &step, s.trees[other], cap_m, &mut scratch);
+                // Also close in itself: a body tracked too slowly still carries a ring nearer
+                // its next place than standing does, but does not put it there.
+                let fits = moved <= f64::from(s.params.fine_corr_dist_m);
+                if fits && still - moved >= seed.min_gain_m && moved <= seed.max_residual_share * still {
+                    joining.push(ci);
+                }
+            }
+            let picked = &mut self.on_body[j];
+            for ci in joining {
+                picked.points.extend_from_slice(&s.clusters[j][ci]);
+                picked.clusters.push(ci);
+            }
+            picked.points.sort_unstable();
+            picked.points.dedup();
+            picked.clusters.sort_unstable();
+            picked.clusters.dedup();
         }
     }
 
@@ -865,7 +931,20 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
     // wall that slides along itself (the aperture problem of a surface whose visible part moves
     // with the sensor) is neither.
     let size: [f32; 3] = std::array::from_fn(|i| extent_max_m[i] - extent_min_m[i]);
-    let plausible = size[1] <= MAX_WIDTH_M && (MIN_HEIGHT_M..=MAX_HEIGHT_M).contains(&size[2]);
+    // A far car behind the ego may show one laser ring only, as flat as a patch of leftover
+    // ground: it must then stand clear of the ground, and count as weak evidence (as a sparse
+    // seed does).
+    let flat = size[2] < MIN_HEIGHT_M;
+    let plausible = size[1] <= MAX_WIDTH_M
+        && size[2] <= MAX_HEIGHT_M
+        && (!flat || s.rays.is_some_and(|r| stands_clear_of_ground(&src, &r[k])));
+    // Whether a frame's return at a place is a point of a body already found.
+    let on_other_body = |j: usize, p: &Point| {
+        trees[j].nearest(p).is_some_and(|h| {
+            let label = s.labels[j][h.index];
+            h.dist2 <= RAY_MARGIN_M * RAY_MARGIN_M && label >= 0 && s.taken[j][label as usize]
+        })
+    };
     let moving = plausible
         && seen >= need_seen
         && held as f64 >= MIN_SMOOTH_SHARE * seen as f64
@@ -884,10 +963,38 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
         // A sparse seed is a few far points: the sensor must also have clearly seen through the
         // place it left.
         && s.rays.is_none_or(|r| {
-            let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r);
-            !place.still_occupied() && (c < s.dense[k] || place.clearly_left())
+            let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
+            !place.still_occupied() && ((c < s.dense[k] && !flat) || place.clearly_left())
         });
     Tracked { body, clusters: clusters_on_body, crossed, moving }
+}
+
+/// A sparse cluster this close (m) to a body's points in a frame may be another of its rings
+/// ([`BodyTrack::take_sparse_neighbours`]): a car's bumper and rear window lie about a metre
+/// apart along it.
+const SPARSE_NEIGHBOUR_GAP_M: f32 = 1.5;
+/// ...and the two together span at most this (m, box diagonal): a car's, 5 m long, 2 m wide
+/// and 1.5 m high, with a metre to spare.
+const MAX_SPARSE_BODY_DIAGONAL_M: f32 = 6.5;
+
+/// A body flatter than [`MIN_HEIGHT_M`] (one laser ring on a far car) must stand this high
+/// (m) above the local ground: clear of the ground removal's tolerance
+/// ([`crate::geometry::ground::GROUND_TOLERANCE_M`], 0.3 m) by 0.15 m of ground-estimate error,
+/// so that no ring of leftover ground qualifies. A car's lowest ring, on its bumper, stands
+/// about 0.5 m up.
+const MIN_FLAT_BODY_HEIGHT_M: f32 = 0.45;
+
+/// Whether `src` (a flat body's seed points, fit coordinates) stands clear of the ground its
+/// sweep saw (`rays`): the median height of its points above it is at least
+/// [`MIN_FLAT_BODY_HEIGHT_M`].
+fn stands_clear_of_ground(src: &[Point], rays: &SweepRays) -> bool {
+    let mut heights_m: Vec<f32> = src.iter().filter_map(|p| rays.height_above_ground_m(p)).collect();
+    if heights_m.len() < src.len().div_ceil(2) {
+        return false;
+    }
+    let middle = heights_m.len() / 2;
+    let (_, median, _) = heights_m.select_nth_unstable_by(middle, f32::total_cmp);
+    *median >= MIN_FLAT_BODY_HEIGHT_M
 }
 
 /// A body standing within this distance (m) of one place...
@@ -1074,6 +1181,7 @@ impl PlaceTallies {
         centre: [f64; 3],
         model_tree: &KdTree,
         rays: &[SweepRays],
+        on_other_body: &dyn Fn(usize, &Point) -> bool,
     ) -> Self {
         let away_m = horizontal_length_m(src) + LEFT_PLACE_MARGIN_M;
         let (mut away, mut vacated) = ((0usize, 0usize), (0usize, 0usize));
@@ -1087,6 +1195,9 @@ impl PlaceTallies {
                     continue;
                 }
                 let (seen, passed) = match rays[j].sight(p, RAY_MARGIN_M) {
+                    // Another moving body passing through the place (the car ahead on the
+                    // same path) says nothing of whether this one left it.
+                    Sight::Seen if on_other_body(j, p) => continue,
                     Sight::Seen => (1, 0),
                     Sight::Passed => (0, 1),
                     Sight::Hidden | Sight::Unknown => continue,
@@ -2533,13 +2644,23 @@ mod tests {
             (end[0] - centre[0]).hypot(end[1] - centre[1]) > horizontal_length_m(&src) + LEFT_PLACE_MARGIN_M + 3.0,
             "the car must be well away from its place in the last frames"
         );
-        assert!(!PlaceTallies::new(&src, 0, &poses, centre, &KdTree::new(&src), &rays).still_occupied());
+        assert!(!PlaceTallies::new(&src, 0, &poses, centre, &KdTree::new(&src), &rays, &|_, _| false).still_occupied());
         // The parked car made to slide 0.8 m a frame along the road is still seen in its place.
         let slide: Vec<Rigid> =
             (0..frames).map(|j| Rigid { translation: [0.8 * j as f64, 0.0, 0.0], ..Rigid::identity() }).collect();
         let parked_centre = centroid(&still_src);
         let parked_model = KdTree::new(&still_src);
-        assert!(PlaceTallies::new(&still_src, 0, &slide, parked_centre, &parked_model, &rays).still_occupied());
+        assert!(
+            PlaceTallies::new(&still_src, 0, &slide, parked_centre, &parked_model, &rays, &|_, _| false)
+                .still_occupied()
+        );
+        // Returns that are another body's (a car ahead on the same path, passing the place) are
+        // not counted as the place still occupied; the rays that passed through still count.
+        let others = PlaceTallies::new(&still_src, 0, &slide, parked_centre, &parked_model, &rays, &|_, _| true);
+        let own = PlaceTallies::new(&still_src, 0, &slide, parked_centre, &parked_model, &rays, &|_, _| false);
+        assert_eq!((others.away.0, others.vacated.0), (0, 0));
+        assert_eq!((others.away.1, others.vacated.1), (own.away.1, own.vacated.1));
+        assert!(!others.still_occupied());
         // Made to creep along the road by less than its own length, its ends are still seen where
         // the creep says they left.
         let creep: Vec<Rigid> =
@@ -2548,10 +2669,16 @@ mod tests {
             0.15 * ((frames - 1) as f64) < horizontal_length_m(&still_src) + LEFT_PLACE_MARGIN_M,
             "the creep must never take it away from its place: only the vacated tally speaks"
         );
-        assert!(PlaceTallies::new(&still_src, 0, &creep, parked_centre, &parked_model, &rays).still_occupied());
+        assert!(
+            PlaceTallies::new(&still_src, 0, &creep, parked_centre, &parked_model, &rays, &|_, _| false)
+                .still_occupied()
+        );
         // Left in its place it never leaves it: no evidence either way.
         let stay = vec![Rigid::identity(); frames];
-        assert!(!PlaceTallies::new(&still_src, 0, &stay, parked_centre, &parked_model, &rays).still_occupied());
+        assert!(
+            !PlaceTallies::new(&still_src, 0, &stay, parked_centre, &parked_model, &rays, &|_, _| false)
+                .still_occupied()
+        );
     }
 
     #[test]
@@ -2751,31 +2878,8 @@ mod tests {
         let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
         let trees: Vec<&KdTree> = trees.iter().collect();
         let dense: Vec<usize> = s.clusters.iter().map(Vec::len).collect();
-        let with_sparse: Vec<Vec<Vec<u32>>> = s
-            .frames
-            .iter()
-            .zip(&s.clusters)
-            .map(|(f, c)| c.iter().cloned().chain(sparse_clusters(f, &KdTree::new(f), c, [0.0, 0.0], eps_m)).collect())
-            .collect();
-        // The sensor (at the origin, identity poses) sees each sweep's points and, behind the far
-        // box, a wall at y = 45 m where the box does not hide it: through the place it left.
-        let backdrop: Vec<Point> =
-            (0..400).flat_map(|i| (0..30).map(move |e| [-40.0 + 0.15 * i as f32, 45.0, 0.15 * e as f32])).collect();
-        let azimuth = |p: &Point| p[1].atan2(p[0]);
-        let elevation = |p: &Point| p[2].atan2(p[0].hypot(p[1]));
-        let rays: Vec<SweepRays> = s
-            .frames
-            .iter()
-            .map(|f| {
-                let far_box: Vec<&Point> = f.iter().filter(|p| far(p)).collect();
-                let (lo, hi) =
-                    far_box.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(azimuth(p)), hi.max(azimuth(p))));
-                let top = far_box.iter().map(|p| elevation(p)).fold(f32::MIN, f32::max);
-                let seen = backdrop.iter().filter(|p| !((lo..=hi).contains(&azimuth(p)) && elevation(p) <= top));
-                let points: Vec<Point> = f.iter().chain(seen).copied().collect();
-                SweepRays::new(&points, &Rigid::identity())
-            })
-            .collect();
+        let with_sparse = with_sparse_clusters(&s, eps_m);
+        let rays = rays_past_far_points(&s, &far, 45.0);
         let search = |clusters: &[Vec<Vec<u32>>]| {
             let clusters: Vec<&[Vec<u32>]> = clusters.iter().map(Vec::as_slice).collect();
             let params = BodyParams::default();
@@ -2799,6 +2903,128 @@ mod tests {
             let err = corner_error_m(&s, body, 3, j);
             assert!(err < 0.2, "frame {j}: corner {err:.3} m off");
         }
+    }
+
+    /// Each frame's clusters of `s` followed by its sparse ones (the sensor at the origin).
+    fn with_sparse_clusters(s: &Scene, eps_m: f32) -> Vec<Vec<Vec<u32>>> {
+        s.frames
+            .iter()
+            .zip(&s.clusters)
+            .map(|(f, c)| c.iter().cloned().chain(sparse_clusters(f, &KdTree::new(f), c, [0.0, 0.0], eps_m)).collect())
+            .collect()
+    }
+
+    /// What the sensor (at the origin, identity poses) saw of each sweep of `s`: its points and,
+    /// behind the far points (`far`), a wall at y = `backdrop_y_m` where they do not hide it: through the
+    /// place a far body left.
+    fn rays_past_far_points(s: &Scene, far: &dyn Fn(&Point) -> bool, backdrop_y_m: f32) -> Vec<SweepRays> {
+        let backdrop: Vec<Point> = (0..400)
+            .flat_map(|i| (0..30).map(move |e| [-40.0 + 0.15 * i as f32, backdrop_y_m, 0.15 * e as f32]))
+            .collect();
+        let azimuth = |p: &Point| p[1].atan2(p[0]);
+        let elevation = |p: &Point| p[2].atan2(p[0].hypot(p[1]));
+        s.frames
+            .iter()
+            .map(|f| {
+                let far_box: Vec<&Point> = f.iter().filter(|p| far(p)).collect();
+                let (lo, hi) =
+                    far_box.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(azimuth(p)), hi.max(azimuth(p))));
+                let top = far_box.iter().map(|p| elevation(p)).fold(f32::MIN, f32::max);
+                let seen = backdrop.iter().filter(|p| !((lo..=hi).contains(&azimuth(p)) && elevation(p) <= top));
+                let points: Vec<Point> = f.iter().chain(seen).copied().collect();
+                SweepRays::new(&points, &Rigid::identity())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_far_car_seen_as_two_separate_rings_is_one_body_holding_both() {
+        // A car driving away 30 m behind the sensor at 6 m/s, seen by two rings only: one on its
+        // bumper (0.3-0.6 m up), one on its rear window, a metre farther and 1.1-1.4 m up (seed
+        // 156's car following the ego, whose two rings DBSCAN kept apart). Each ring is a
+        // sparse cluster of its own.
+        let t = 12;
+        let mut s = scene(t);
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        s.truth.push(Vec::new());
+        // (x from, x to, y, lowest z, points) in the car's coordinates.
+        let rings = [(0.0f32, 1.8f32, 0.0f32, 0.3f32, 30usize), (0.2, 1.6, -1.0, 1.1, 25)];
+        for (k, frame) in s.frames.iter_mut().enumerate() {
+            let motion = planar(-6.0, -30.0 - 6.0 * s.times[k], 0.0);
+            for &(x0, x1, y, z0, points) in &rings {
+                // Evenly along the ring (as a sensor's azimuth steps), a little jittered.
+                for i in 0..points {
+                    let x = x0 + (x1 - x0) * (i as f32 + 0.5) / points as f32 + rng.random_range(-0.02..0.02f32);
+                    frame.push(motion.apply(&[x, y, z0 + rng.random_range(0.0..0.3f32)]));
+                }
+            }
+            s.truth[3].push(motion);
+        }
+        let eps_m = 0.8;
+        let far = |p: &Point| p[1] < -29.0;
+        let with_sparse = with_sparse_clusters(&s, eps_m);
+        for (k, clusters) in with_sparse.iter().enumerate() {
+            let far_clusters =
+                clusters[s.clusters[k].len()..].iter().filter(|c| far(&s.frames[k][c[0] as usize])).count();
+            assert_eq!(far_clusters, 2, "frame {k}: the two rings are two sparse clusters");
+        }
+        let rays = rays_past_far_points(&s, &far, -45.0);
+        let trees: Vec<KdTree> = s.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let dense: Vec<usize> = s.clusters.iter().map(Vec::len).collect();
+        let clusters: Vec<&[Vec<u32>]> = with_sparse.iter().map(Vec::as_slice).collect();
+        let params = BodyParams::default();
+        let bodies =
+            find_moving_bodies(&frames, &trees, &clusters, &dense, Some(&rays), &s.times, 3.0, &params, &mut |_, _| {
+                ControlFlow::Continue(())
+            })
+            .expect("never stopped");
+        let far_bodies: Vec<&MovingBody> = bodies.iter().filter(|b| b.members.iter().flatten().any(&far)).collect();
+        assert_eq!(far_bodies.len(), 1, "one body for the far car");
+        let body = far_bodies[0];
+        let observed: Vec<usize> = (0..t).filter(|&j| body.observed[j]).collect();
+        assert!(observed.len() >= t - 2, "seen in {} of {t} frames", observed.len());
+        let both_rings: usize = rings.iter().map(|r| r.4).sum();
+        for j in observed {
+            // Members are kept thinned to a voxel grid; their count is the frame's points on it.
+            let count = body.member_counts[j];
+            assert!(
+                10 * count >= 9 * both_rings && count <= both_rings,
+                "frame {j}: {count} of {both_rings} on the body"
+            );
+            for (n, &(_, _, _, z0, _)) in rings.iter().enumerate() {
+                let ring_z = |p: &&Point| (z0..=z0 + 0.3).contains(&p[2]);
+                assert!(body.members[j].iter().filter(ring_z).count() >= 5, "frame {j}: ring {n} is not on the body");
+            }
+        }
+    }
+
+    #[test]
+    fn a_flat_body_must_stand_clear_of_the_ground_its_sweep_saw() {
+        // A sensor 1.8 m above a flat road (ground returns every 0.25 m out to 40 m), and one
+        // ring of a far car 24 m behind: 0.7 m up it is a car's, 0.35 m up it could be a ring
+        // of leftover ground (the ground removal keeps what lies 0.3 m up or more).
+        let sensor_height_m = 1.8;
+        let ground: Vec<Point> = (-160..160)
+            .flat_map(|i| (-160..160).map(move |j| [0.25 * i as f32, 0.25 * j as f32, -sensor_height_m]))
+            .collect();
+        let rays = SweepRays::new(&ground, &Rigid::identity());
+        let ring = |height_m: f32| -> Vec<Point> {
+            (0..30).map(|i| [-24.0, -1.0 + 0.07 * i as f32, height_m - sensor_height_m]).collect()
+        };
+        assert!(stands_clear_of_ground(&ring(0.7), &rays));
+        assert!(stands_clear_of_ground(&ring(MIN_FLAT_BODY_HEIGHT_M + 0.02), &rays));
+        assert!(!stands_clear_of_ground(&ring(0.35), &rays));
+        assert!(!stands_clear_of_ground(&ring(MIN_FLAT_BODY_HEIGHT_M - 0.02), &rays));
+        // Moved into fit coordinates (the sensor 10 m on along x), the same answers.
+        let moved = Rigid::from_yaw(0.0, [10.0, 0.0, 0.0]);
+        let rays = SweepRays::new(&ground, &moved);
+        let in_fit = |points: Vec<Point>| -> Vec<Point> { points.iter().map(|p| moved.apply(p)).collect() };
+        assert!(stands_clear_of_ground(&in_fit(ring(0.7)), &rays));
+        assert!(!stands_clear_of_ground(&in_fit(ring(0.35)), &rays));
+        // Beyond what the sweep saw, nothing stands clear.
+        assert!(!stands_clear_of_ground(&ring(0.7), &SweepRays::new(&[], &Rigid::identity())));
     }
 
     /// `s` with the straight box (box 0) seen by `sparse_points` of its points from frame

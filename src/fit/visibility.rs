@@ -7,6 +7,7 @@
 //! looked through to the road behind.
 
 use crate::geometry::Point;
+use crate::geometry::ground::{GroundEstimate, GroundParams};
 use crate::geometry::knn::KdTree;
 use crate::geometry::rigid::Rigid;
 
@@ -35,6 +36,8 @@ pub struct SweepRays {
     /// Unit directions of the returns, in sensor coordinates.
     directions: KdTree,
     ranges_m: Vec<f32>,
+    /// The local ground under the sweep (sensor coordinates), estimated from all its returns.
+    ground: Option<GroundEstimate>,
 }
 
 impl SweepRays {
@@ -50,7 +53,15 @@ impl SweepRays {
                 ranges_m.push(r);
             }
         }
-        Self { fit_to_sensor: sensor_to_fit.inverse(), directions: KdTree::new(&unit), ranges_m }
+        let ground = GroundEstimate::new(sensor_points, &GroundParams::default())
+            .expect("the default ground parameters are valid");
+        Self { fit_to_sensor: sensor_to_fit.inverse(), directions: KdTree::new(&unit), ranges_m, ground }
+    }
+
+    /// Height (m) of `point` (fit coordinates) above the local ground this sweep saw under it
+    /// (the estimate of the fit's ground removal); `None` where the sweep saw no ground.
+    pub fn height_above_ground_m(&self, point: &Point) -> Option<f32> {
+        self.ground.as_ref()?.height_above(&self.fit_to_sensor.apply(point))
     }
 
     /// How the sensor saw `point` (fit coordinates), with the ray nearest its direction and a

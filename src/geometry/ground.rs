@@ -157,53 +157,74 @@ impl PreprocessParams {
     }
 }
 
+/// The local ground of one sweep: the height h(cell) of every cell of its x-y grid (see the
+/// module doc), to be asked at any point of the sweep's coordinates.
+#[derive(Debug, Clone)]
+pub struct GroundEstimate {
+    grid: Grid,
+    /// Per cell (row-major, x fastest): the ground height (m); +inf where nothing says.
+    height_m: Vec<f32>,
+}
+
+impl GroundEstimate {
+    /// The ground estimated from `points` (sensor coordinates, z up); `None` when no point is
+    /// finite. O(n + cells).
+    pub fn new(points: &[Point], params: &GroundParams) -> Result<Option<Self>, GroundParamsError> {
+        params.validate()?;
+        let Some(grid) = Grid::new(points, params) else {
+            return Ok(None);
+        };
+        let n_cells = grid.nx * grid.ny;
+        // Counting sort of z by cell: offsets, then the z values cell after cell.
+        let cell_of: Vec<u32> = points.iter().map(|p| grid.cell(p).map_or(u32::MAX, |c| c as u32)).collect();
+        let mut start = vec![0u32; n_cells + 1];
+        for &c in &cell_of {
+            if c != u32::MAX {
+                start[c as usize + 1] += 1;
+            }
+        }
+        for c in 0..n_cells {
+            start[c + 1] += start[c];
+        }
+        let mut fill = start.clone();
+        let mut z_sorted = vec![0.0f32; start[n_cells] as usize];
+        for (p, &c) in points.iter().zip(&cell_of) {
+            if c != u32::MAX {
+                z_sorted[fill[c as usize] as usize] = p[2];
+                fill[c as usize] += 1;
+            }
+        }
+        drop(fill);
+        let mut h = vec![f32::INFINITY; n_cells];
+        for c in 0..n_cells {
+            let zs = &mut z_sorted[start[c] as usize..start[c + 1] as usize];
+            if zs.is_empty() {
+                continue;
+            }
+            let k = ((zs.len() - 1) as f32 * params.cell_quantile).floor() as usize;
+            let (_, z, _) = zs.select_nth_unstable_by(k, f32::total_cmp);
+            h[c] = *z;
+        }
+        reject_pits(&mut h, grid.nx, grid.ny, params.pit_depth_m);
+        slope_envelope(&mut h, grid.nx, grid.ny, params.max_slope * params.cell_m);
+        Ok(Some(Self { grid, height_m: h }))
+    }
+
+    /// Height (m) of `p` above the ground under it: z − h(cell). `None` outside the grid, for a
+    /// non-finite point, or where the sweep saw no ground at all.
+    pub fn height_above(&self, p: &Point) -> Option<f32> {
+        let h = self.height_m[self.grid.cell(p)?];
+        h.is_finite().then(|| p[2] - h)
+    }
+}
+
 /// Height of every point above the estimated local ground (m): z − h(cell). NaN for points with
 /// a non-finite coordinate or outside the grid (`grid_half_extent_m`). See the module doc.
 pub fn height_above_ground(points: &[Point], params: &GroundParams) -> Result<Vec<f32>, GroundParamsError> {
-    params.validate()?;
-    let mut heights = vec![f32::NAN; points.len()];
-    let Some(grid) = Grid::new(points, params) else {
-        return Ok(heights);
+    let Some(ground) = GroundEstimate::new(points, params)? else {
+        return Ok(vec![f32::NAN; points.len()]);
     };
-    let n_cells = grid.nx * grid.ny;
-    // Counting sort of z by cell: offsets, then the z values cell after cell.
-    let cell_of: Vec<u32> = points.iter().map(|p| grid.cell(p).map_or(u32::MAX, |c| c as u32)).collect();
-    let mut start = vec![0u32; n_cells + 1];
-    for &c in &cell_of {
-        if c != u32::MAX {
-            start[c as usize + 1] += 1;
-        }
-    }
-    for c in 0..n_cells {
-        start[c + 1] += start[c];
-    }
-    let mut fill = start.clone();
-    let mut z_sorted = vec![0.0f32; start[n_cells] as usize];
-    for (p, &c) in points.iter().zip(&cell_of) {
-        if c != u32::MAX {
-            z_sorted[fill[c as usize] as usize] = p[2];
-            fill[c as usize] += 1;
-        }
-    }
-    drop(fill);
-    let mut h = vec![f32::INFINITY; n_cells];
-    for c in 0..n_cells {
-        let zs = &mut z_sorted[start[c] as usize..start[c + 1] as usize];
-        if zs.is_empty() {
-            continue;
-        }
-        let k = ((zs.len() - 1) as f32 * params.cell_quantile).floor() as usize;
-        let (_, z, _) = zs.select_nth_unstable_by(k, f32::total_cmp);
-        h[c] = *z;
-    }
-    reject_pits(&mut h, grid.nx, grid.ny, params.pit_depth_m);
-    slope_envelope(&mut h, grid.nx, grid.ny, params.max_slope * params.cell_m);
-    for ((out, p), &c) in heights.iter_mut().zip(points).zip(&cell_of) {
-        if c != u32::MAX {
-            *out = p[2] - h[c as usize];
-        }
-    }
-    Ok(heights)
+    Ok(points.iter().map(|p| ground.grid.cell(p).map_or(f32::NAN, |c| p[2] - ground.height_m[c])).collect())
 }
 
 /// Ground flags: true where a point lies at most `tolerance_m` above the local ground estimate
@@ -242,6 +263,7 @@ pub fn preprocess(points: &[Point], params: &PreprocessParams) -> Result<(Vec<u3
 
 /// The occupied part of the x-y grid: the bounding box of the finite points clipped to the
 /// half-extent square around the sensor.
+#[derive(Debug, Clone)]
 struct Grid {
     x0: f32,
     y0: f32,
@@ -566,6 +588,29 @@ mod tests {
         let boxes = [car(8.0, -3.0, z(12.2, -1.2)), car(-15.0, 3.0, z(-10.8, 4.8))];
         let (pts, truth) = scene(z, &boxes, 2);
         check_scene(&pts, &truth, z);
+    }
+
+    #[test]
+    fn the_estimate_asked_anywhere_agrees_with_the_heights_of_the_points_it_came_from() {
+        let z = |x: f32, y: f32| -1.73 + 0.08 * x + 0.02 * y;
+        let boxes = [car(8.0, -3.0, z(12.2, -1.2))];
+        let (pts, _) = scene(z, &boxes, 4);
+        let params = GroundParams::default();
+        let heights = height_above_ground(&pts, &params).unwrap();
+        let ground = GroundEstimate::new(&pts, &params).unwrap().expect("finite points");
+        for (p, &h) in pts.iter().zip(&heights) {
+            assert_eq!(ground.height_above(p), Some(h), "{p:?}");
+        }
+        // Between the returns, over the road: the road's own height, within the 2 cm noise and
+        // a cell's rise (0.08 * 0.5 + 0.02 * 0.5 m).
+        for &(x, y) in &[(5.3f32, 7.1f32), (-20.2, 3.3), (14.0, -15.5)] {
+            let h = ground.height_above(&[x, y, z(x, y) + 1.0]).expect("inside the grid");
+            assert!((h - 1.0).abs() < 0.08, "({x}, {y}): {h:.3} m up, 1 m expected");
+        }
+        // Outside the grid and non-finite: no answer.
+        assert_eq!(ground.height_above(&[500.0, 0.0, 0.0]), None);
+        assert_eq!(ground.height_above(&[f32::NAN, 0.0, 0.0]), None);
+        assert!(GroundEstimate::new(&[], &params).unwrap().is_none());
     }
 
     #[test]
