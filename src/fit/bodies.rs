@@ -726,9 +726,9 @@ impl BodyTrack {
     /// metre nearer than the one on its rear window, and the two make separate sparse clusters.
     /// A body holds only the rings its model grew from; a sparse cluster of an observed frame
     /// that lies beside the body (within [`SPARSE_NEIGHBOUR_GAP_M`] of its box, the two within
-    /// a car's size together) and moves with it (carried by the body's motion to the nearest
-    /// observed frame, it fits that frame clearly better than left standing: the seed test)
-    /// joins it whole.
+    /// a car's size together) and moves with it joins it whole. Moves with it: carried by the
+    /// body's motion to the nearest observed frame, it lies within the fine registration's
+    /// distance of that frame's points, and clearly nearer than left standing (the seed test).
     fn take_sparse_neighbours(&mut self, s: &Scene<'_>) {
         let t = s.len();
         let seed = &s.params.seed;
