@@ -743,14 +743,14 @@ impl BodyTrack {
                 continue;
             }
             let body_box = Aabb::of(picked.points.iter().map(|&i| &s.frames[j][i as usize]));
-            let held: HashSet<u32> = picked.points.iter().copied().collect();
             let step = self.poses[other].compose(&self.poses[j].inverse());
             let mut joining = Vec::new();
             for ci in s.dense[j]..s.clusters[j].len() {
                 let cluster = &s.clusters[j][ci];
                 let cluster_box = s.boxes[j][ci];
                 if s.taken[j][ci]
-                    || cluster.iter().all(|i| held.contains(i))
+                    // Already on the body whole (its points are sorted).
+                    || cluster.iter().all(|i| picked.points.binary_search(i).is_ok())
                     || !cluster_box.overlaps(&body_box, SPARSE_NEIGHBOUR_GAP_M)
                     || body_box.union(&cluster_box).diagonal_m() > MAX_SPARSE_BODY_DIAGONAL_M
                 {
@@ -763,7 +763,7 @@ impl BodyTrack {
                 // Also close in itself: a body tracked too slowly still carries a ring nearer
                 // its next place than standing does, but does not put it there.
                 let fits = moved <= f64::from(s.params.fine_corr_dist_m);
-                if fits && still - moved >= seed.min_gain_m && moved <= seed.max_residual_share * still {
+                if fits && seed.clearly_moved(still, moved) {
                     joining.push(ci);
                 }
             }
@@ -846,9 +846,6 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
     // static structure in some frames is mostly not moving, however many frames its seed moves in.
     let (mut tested_points, mut clear_points) = (0usize, 0usize);
     let long_seed = horizontal_length_m(&src) >= RAY_CLEAR_MIN_LENGTH_M;
-    let is_clear = |still: f64, moved: f64| {
-        still - moved >= params.seed.min_gain_m && moved <= params.seed.max_residual_share * still
-    };
     let seed_place = poses[k].apply_f64(centre);
     for j in (0..t).filter(|&j| j != k && observed[j]) {
         // A body that has moved less than twice the seed test's gain from where the seed was
@@ -864,7 +861,9 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
         let moved = mean_distance_m(&src, &poses[j], trees[j], cap_m, &mut scratch);
         // For a seed as long as a car, the sensor's rays say what the distances cannot of one
         // moving along its own flank, which left standing still overlaps its next sweep.
-        if is_clear(still, moved) || (long_seed && s.rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j]))) {
+        if params.seed.clearly_moved(still, moved)
+            || (long_seed && s.rays.is_some_and(|r| moving_by_rays(&src, &poses[j], &r[j])))
+        {
             clear += 1;
             clear_points += on_body[j].points.len();
             continue;
@@ -885,7 +884,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
             let step = poses[j].compose(&poses[i].inverse());
             let still = mean_distance_m(&from, &Rigid::identity(), trees[j], cap_m, &mut scratch);
             let moved = mean_distance_m(&from, &step, trees[j], cap_m, &mut scratch);
-            if is_clear(still, moved) {
+            if params.seed.clearly_moved(still, moved) {
                 clear += 1;
                 clear_points += on_body[j].points.len();
                 break;

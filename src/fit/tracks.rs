@@ -46,6 +46,14 @@ pub struct TrackParams {
     pub max_track_points: usize,
 }
 
+impl TrackParams {
+    /// The seed test's verdict on a cluster's mean distances (m) to another sweep, left standing
+    /// (`still_m`) and carried by a motion (`moved_m`): the motion explains it clearly better.
+    pub fn clearly_moved(&self, still_m: f64, moved_m: f64) -> bool {
+        still_m - moved_m >= self.min_gain_m && moved_m <= self.max_residual_share * still_m
+    }
+}
+
 impl Default for TrackParams {
     fn default() -> Self {
         Self {
@@ -192,7 +200,7 @@ pub(crate) fn moving_step(
         return None; // no motion can gain enough
     }
     let (first, moved) = search_first_step(src, trees[probe], frames[probe], params, &mut scratch);
-    if still - moved < params.min_gain_m || moved > params.max_residual_share * still {
+    if !params.clearly_moved(still, moved) {
         return None;
     }
     Some((probe, first))
