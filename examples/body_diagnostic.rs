@@ -203,6 +203,14 @@ fn main() -> anyhow::Result<()> {
                     line += &format!(" {j}:({:.2},{:.2})", c[0], c[1]);
                 }
                 println!("    truth{line}");
+                // How many of the object's own (non-ground) points each sweep saw.
+                let visible: Vec<String> = (0..sim.frames.len())
+                    .map(|k| {
+                        let n = sim.truth[k].iter().filter(|t| t.object_id == *id && !t.is_ground).count();
+                        format!("{k}:{n}")
+                    })
+                    .collect();
+                println!("    seen {}", visible.join(" "));
                 // Where the model carries the same points, in fit coordinates.
                 let member_points: Vec<Point> = members.iter().map(|&i| sim.frames[0][i]).collect();
                 let every: Vec<f64> = ts.to_vec();
