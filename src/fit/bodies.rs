@@ -17,7 +17,10 @@
 //!    body coordinates), and adds them to the model. The model grows towards the whole car, so a
 //!    sweep that sees only a flank is held by the shape seen before (the aperture problem of a
 //!    pairwise chain), and each frame's pose is a registration to the model, not the end of a
-//!    chain of pairwise steps. A frame with no associated cluster keeps the prediction;
+//!    chain of pairwise steps. A frame with no associated cluster keeps the prediction. A body
+//!    found moving is followed once more trusting its prediction where a registration puts a
+//!    steadily tracked vehicle farther behind it than braking can (the sweep saw only sections of
+//!    the car beside the shadow of a nearer one): that frame keeps the prediction too;
 //! 3. **smoothing**: the observed poses are fitted locally (the eight observed frames nearest in
 //!    time) with a planar motion of constant acceleration and constant change of turn rate
 //!    (quadratic in time for heading and position, least squares); a frame far from the fit of
@@ -226,7 +229,17 @@ pub fn find_moving_bodies(
             max_extrapolation,
             params,
         };
-        let tracked = track_body(k, c, probe, first, &scene);
+        let mut tracked = track_body(k, c, probe, first, &scene, false);
+        if tracked.moving && tracked.would_doubt {
+            // Once it is known to move, a body is followed again trusting its prediction where
+            // a registration says it stopped dead ([`BodyTrack::follow`]). Not before: a parked
+            // car whose registrations slid along its flank while the sensor passed would be
+            // carried on by the slide where its end finally pins it.
+            let trusting = track_body(k, c, probe, first, &scene, true);
+            if trusting.moving {
+                tracked = trusting;
+            }
+        }
         if !tracked.moving {
             // Still after all, or a seed step that led the track astray: it seeds no other
             // body, but stays free to join one found from a better seed.
@@ -464,6 +477,9 @@ struct Tracked {
     crossed: Vec<(usize, usize)>,
     /// Whether it is moving, judged from all its observed frames.
     moving: bool,
+    /// Whether the tracking met a registration it would have set aside trusting the prediction
+    /// ([`BodyTrack::follow`]).
+    would_doubt: bool,
 }
 
 /// What tracking a body reads: the frames (fit coordinates) and what was found in them.
@@ -521,6 +537,12 @@ struct BodyTrack {
     on_body: Vec<Picked>,
     /// Frames registered after the tracking had lost the body at least once.
     regained: Vec<bool>,
+    /// Frames whose registration was set aside: it put a steadily tracked body farther behind
+    /// its prediction than a vehicle can brake ([`BodyTrack::follow`]).
+    doubted: Vec<bool>,
+    /// Whether such registrations are set aside; when not, `would_doubt` says whether any was.
+    trust_prediction: bool,
+    would_doubt: bool,
 }
 
 impl BodyTrack {
@@ -538,6 +560,9 @@ impl BodyTrack {
             observed: vec![false; frames],
             on_body: vec![Picked::default(); frames],
             regained: vec![false; frames],
+            doubted: vec![false; frames],
+            trust_prediction: false,
+            would_doubt: false,
         }
     }
 
@@ -554,7 +579,9 @@ impl BodyTrack {
     /// Follows the body from frame `from` (its pose there known) to the end of the sequence
     /// (`forward`) or its start. The first step is `first_guess` when given, else constant
     /// velocity from `previous`, the pose of the frame before `from` along the chain. `centre`
-    /// is where the body's step is measured (model coordinates).
+    /// is where the body's step is measured (model coordinates). With `trust_prediction`, a
+    /// registration that falls behind a steady prediction by more than
+    /// [`reach_from_prediction_m`] is set aside (the frame is `doubted`, not observed).
     fn follow(
         &mut self,
         s: &Scene<'_>,
@@ -570,6 +597,10 @@ impl BodyTrack {
         let mut current = self.poses[from];
         let mut last_seen = s.times[from];
         let mut lost = false;
+        let seconds = seconds_per_unit(s.max_extrapolation);
+        // Registrations in a row that landed within reach of their prediction, and registrations
+        // in a row set aside.
+        let (mut steady, mut doubted) = (0usize, 0usize);
         for (n, j) in steps.into_iter().enumerate() {
             if (s.times[j] - last_seen).abs() > s.max_extrapolation {
                 // Past the horizon the body is no longer predicted: it keeps its last predicted
@@ -606,12 +637,51 @@ impl BodyTrack {
                 let along = s.rays.map(|r| Along { rays: &r[j], step_m });
                 let to_model =
                     register_to_model(&points, &guess, &self.model, &self.model_tree, along, t == 2, s.params);
-                self.grow(&points, &to_model);
-                self.observed[j] = true;
-                self.regained[j] = lost;
-                last_seen = s.times[j];
-                self.on_body[j] = picked;
-                to_model.inverse()
+                let registered = to_model.inverse();
+                let last = if forward { j - 1 } else { j + 1 };
+                let dt_s = (s.times[j] - s.times[last]).abs() * seconds;
+                let reach_m = reach_from_prediction_m(dt_s);
+                let off_m = horizontal_distance_m(&registered, &guess, centre);
+                // How far the registration fell behind the prediction along the predicted step.
+                let behind_m = travel_direction(step_m).map_or(0.0, |d| {
+                    let (g, r) = (guess.apply_f64(centre), registered.apply_f64(centre));
+                    (g[0] - r[0]) * d[0] + (g[1] - r[1]) * d[1]
+                });
+                let speed_m_s = step_m[0].hypot(step_m[1]) / dt_s.max(f64::EPSILON);
+                let implausible = n > 0
+                    && steady >= STEADY_FRAMES
+                    && speed_m_s >= MIN_DOUBT_SPEED_M_S
+                    && behind_m > reach_m
+                    && doubted < MAX_DOUBTED_FRAMES
+                    // Why a sweep would show a car stopped dead: something nearer hides much of
+                    // it where the prediction puts it. Without that, a sparse far car's slow
+                    // registrations may be a real turn or braking (log 132's oncoming car).
+                    && s.rays.is_some_and(|r| {
+                        let stride = self.model.len().div_ceil(SLIDE_MODEL_POINTS).max(1);
+                        let placed: Vec<Point> = self.model.iter().step_by(stride).map(|p| guess.apply(p)).collect();
+                        r[j].hidden_share(&placed, OCCLUDER_MARGIN_M).is_some_and(|share| share >= MIN_HIDDEN_SHARE)
+                    });
+                self.would_doubt |= implausible;
+                if implausible && self.trust_prediction {
+                    // A steadily tracked vehicle does not stop dead: the sweep saw only part of
+                    // it (seed 158: the sections of a crossing car's flank beside the shadow of
+                    // a nearer car), and those sections pinned the registration. The prediction
+                    // stands, the model does not grow, and the frame is left to the smooth
+                    // motion.
+                    doubted += 1;
+                    self.doubted[j] = true;
+                    lost = true;
+                    guess
+                } else {
+                    steady = if off_m <= reach_m { steady + 1 } else { 0 };
+                    doubted = 0;
+                    self.grow(&points, &to_model);
+                    self.observed[j] = true;
+                    self.regained[j] = lost;
+                    last_seen = s.times[j];
+                    self.on_body[j] = picked;
+                    registered
+                }
             };
             previous = current;
             current = pose;
@@ -660,9 +730,16 @@ impl BodyTrack {
                 let to_model =
                     register_to_model(&points, &guess, &self.model, &self.model_tree, along, t == 2, s.params);
                 let pose = to_model.inverse();
-                // A registration that lands far from the smooth motion took something else.
-                let (a, b) = (pose.apply_f64(centre), guess.apply_f64(centre));
-                if (a[0] - b[0]).hypot(a[1] - b[1]) > REACQUIRE_MAX_SHIFT_M {
+                // A registration that lands far from the smooth motion took something else; one
+                // the tracking already set aside must land within a road user's reach of it.
+                let shift_m = horizontal_distance_m(&pose, &guess, centre);
+                let max_shift_m = if self.doubted[j] {
+                    let spacing = if j > 0 { s.times[j] - s.times[j - 1] } else { s.times[1] - s.times[0] };
+                    reach_from_prediction_m(spacing.abs() * seconds_per_unit(s.max_extrapolation))
+                } else {
+                    REACQUIRE_MAX_SHIFT_M
+                };
+                if shift_m > max_shift_m {
                     continue;
                 }
                 self.grow(&points, &to_model);
@@ -813,10 +890,11 @@ impl BodyTrack {
 
 /// Follows the body of cluster `c` of frame `k` (its test step `first` to frame `probe`) through
 /// every frame.
-fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> Tracked {
+fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, trust_prediction: bool) -> Tracked {
     let (t, frames, trees, params) = (s.len(), s.frames, s.trees, s.params);
     // Model points in seed-frame coordinates (the body's pose at frame k is the identity).
     let mut track = BodyTrack::new(s.clusters[k][c].iter().map(|&i| frames[k][i as usize]), t, params);
+    track.trust_prediction = trust_prediction;
     track.observed[k] = true;
     track.on_body[k] = Picked { points: s.clusters[k][c].clone(), clusters: vec![c], crossed: Vec::new() };
     let max_src = params.seed.max_track_points;
@@ -916,6 +994,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
     track.settle_members(s, &model_tree);
     let poses = track.poses.clone();
     let crossed = (0..t).flat_map(|j| track.on_body[j].crossed.iter().map(move |&ci| (j, ci))).collect();
+    let would_doubt = track.would_doubt;
     let (body, clusters_on_body) = track.into_body(s, body_to_seed);
     let (extent_min_m, extent_max_m) = (body.extent_min_m, body.extent_max_m);
     // A body is a consistent object: seen often enough to judge, its registrations mostly on one
@@ -965,7 +1044,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>) -> 
             let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
             !place.still_occupied() && ((c < s.dense[k] && !flat) || place.clearly_left())
         });
-    Tracked { body, clusters: clusters_on_body, crossed, moving }
+    Tracked { body, clusters: clusters_on_body, crossed, moving, would_doubt }
 }
 
 /// A sparse cluster this close (m) to a body's points in a frame may be another of its rings
@@ -1270,6 +1349,39 @@ const REACQUIRE_ROUNDS: usize = 2;
 /// A frame found again must register within this distance (m, at the body's centre) of where
 /// the smooth motion put it.
 const REACQUIRE_MAX_SHIFT_M: f64 = 1.0;
+
+/// A body's registrations that landed within reach of their predictions in this many frames in a
+/// row make its velocity one to predict from ([`BodyTrack::follow`])...
+const STEADY_FRAMES: usize = 3;
+/// ...and then a registration off its prediction by more than [`reach_from_prediction_m`] is set
+/// aside, in at most this many frames in a row (0.8 s at 10 Hz: a car behind another one).
+const MAX_DOUBTED_FRAMES: usize = 8;
+/// Only a body predicted at least this fast (m/s; a walker's 1.5 m/s is not) has a registration
+/// that falls behind its prediction set aside: a vehicle cannot stop dead, and a walker's sparse
+/// registrations scatter by as much as it moves.
+const MIN_DOUBT_SPEED_M_S: f64 = 3.0;
+/// ...and only where at least this share of its model, placed at the prediction, is hidden
+/// behind a return at least [`OCCLUDER_MARGIN_M`] nearer than all of it (another road user, a
+/// post): the sweep then sees sections of the body only.
+const MIN_HIDDEN_SHARE: f32 = 0.15;
+/// See [`MIN_HIDDEN_SHARE`] (m).
+const OCCLUDER_MARGIN_M: f32 = 0.5;
+/// A registration's scatter (m) on top of what a road user's braking or speeding up moves it off
+/// a constant-velocity prediction.
+const PREDICTION_SLACK_M: f64 = 0.3;
+
+/// How far (m) a road user can land from its constant-velocity prediction `dt_s` after the last
+/// frame: braking or speeding up at [`MAX_START_STOP_ACCEL_M_S2`] changes its velocity by
+/// `a dt` over the step, which moves it `a dt^2`; plus [`PREDICTION_SLACK_M`].
+fn reach_from_prediction_m(dt_s: f64) -> f64 {
+    MAX_START_STOP_ACCEL_M_S2 * dt_s * dt_s + PREDICTION_SLACK_M
+}
+
+/// The horizontal distance (m) between where poses `a` and `b` put the model point `centre`.
+fn horizontal_distance_m(a: &Rigid, b: &Rigid, centre: [f64; 3]) -> f64 {
+    let (p, q) = (a.apply_f64(centre), b.apply_f64(centre));
+    (p[0] - q[0]).hypot(p[1] - q[1])
+}
 
 /// The motion taking `points` (one frame's points on a body) onto the body's `model`, from the
 /// body's predicted pose `guess` (model -> frame): coarse ICP rounds, then fine rounds that
@@ -2138,7 +2250,7 @@ mod tests {
             let c = s.truth[i][0].apply_f64([2.1, 0.9, 0.75]);
             (0..3).map(|x| (c[x] - m0[x]).powi(2)).sum::<f64>()
         };
-        (0..3).min_by(|&a, &b| d(a).total_cmp(&d(b))).unwrap()
+        (0..s.truth.len()).min_by(|&a, &b| d(a).total_cmp(&d(b))).unwrap()
     }
 
     /// The largest distance (m) at frame `j` between a corner of box `b` carried from frame 0 by
@@ -2361,6 +2473,85 @@ mod tests {
         }
         let width = body.extent_max_m[1] - body.extent_min_m[1];
         assert!(width < 2.1, "{width:.2} m wide");
+    }
+
+    #[test]
+    fn a_car_whose_sweeps_show_it_stopped_dead_behind_a_post_is_carried_on_and_a_braking_car_is_followed() {
+        // Two cars at 8 m/s along +x, 10 Hz, the sensor at the origin. The first (8 m off) passes
+        // behind a post 4 m off in frames 9 and 10: those sweeps see only its two ends beside
+        // the post's shadow, and they stay where the car was at frame 8, so registering them
+        // says the car stopped dead (seed 158's crossing car). Without setting those
+        // registrations aside, the smooth motion bends towards them (0.26 m off at frame 7).
+        // The second car brakes at 8 m/s^2 from frame 6 to a stop: a real deceleration, seen
+        // whole, which must be followed.
+        let t = 22;
+        let stalled = 9..=10;
+        let cruising: Vec<Rigid> = (0..t).map(|k| planar(-10.0 + 0.8 * k as f64, 8.0, 0.0)).collect();
+        let braking: Vec<Rigid> = (0..t)
+            .map(|k| {
+                let s_m = |time_s: f64| {
+                    let brake_s = (time_s - 0.6).clamp(0.0, 1.0);
+                    8.0 * time_s.min(0.6) + 8.0 * brake_s - 4.0 * brake_s * brake_s
+                };
+                planar(-10.0 + s_m(0.1 * k as f64), -8.0, 0.0)
+            })
+            .collect();
+        let seen_at: Vec<Rigid> =
+            (0..t).map(|k| if stalled.contains(&k) { cruising[8] } else { cruising[k] }).collect();
+        let mut s = boxes_scene(31, &[seen_at, braking.clone()], [4.2, 1.8, 1.5], &|_| 500, &|_| false);
+        s.truth = vec![cruising, braking];
+        let to_car = s.truth[0][8].inverse();
+        let mut rng = ChaCha8Rng::seed_from_u64(32);
+        for k in stalled.clone() {
+            // Only the car's ends are seen: its points within a metre of its front or back.
+            let hidden: Vec<bool> = (0..s.frames[k].len())
+                .map(|i| {
+                    s.clusters[k][1].contains(&(i as u32)) && (1.0..=3.2).contains(&to_car.apply(&s.frames[k][i])[0])
+                })
+                .collect();
+            let mut renumber = vec![0u32; hidden.len()];
+            let mut frame = Vec::new();
+            for (i, p) in s.frames[k].iter().enumerate() {
+                renumber[i] = frame.len() as u32;
+                if !hidden[i] {
+                    frame.push(*p);
+                }
+            }
+            for cluster in &mut s.clusters[k] {
+                cluster.retain(|&i| !hidden[i as usize]);
+                cluster.iter_mut().for_each(|i| *i = renumber[*i as usize]);
+            }
+            // The post's face (in no cluster: it only hides the car from the sensor's rays).
+            frame.extend(box_surface(&mut rng, 300, [0.9, 0.2, 2.0]).iter().map(|p| [p[0] - 1.2, p[1] + 4.0, p[2]]));
+            s.frames[k] = frame;
+        }
+        let rays: Vec<SweepRays> = s.frames.iter().map(|f| SweepRays::new(f, &Rigid::identity())).collect();
+        let trees: Vec<KdTree> = s.frames.iter().map(|f| KdTree::new(f)).collect();
+        let frames: Vec<&[Point]> = s.frames.iter().map(Vec::as_slice).collect();
+        let trees: Vec<&KdTree> = trees.iter().collect();
+        let clusters: Vec<&[Vec<u32>]> = s.clusters.iter().map(Vec::as_slice).collect();
+        let dense: Vec<usize> = clusters.iter().map(|c| c.len()).collect();
+        let params = BodyParams::default();
+        let bodies =
+            find_moving_bodies(&frames, &trees, &clusters, &dense, Some(&rays), &s.times, 3.0, &params, &mut |_, _| {
+                ControlFlow::Continue(())
+            })
+            .expect("never stopped");
+        assert_eq!(bodies.len(), 2, "one body per car");
+        for body in &bodies {
+            let b = box_of(&s, body);
+            for j in 0..t {
+                let err = corner_error_m(&s, body, b, j);
+                assert!(err < 0.15, "car {b} frame {j}: corner {err:.3} m off");
+            }
+        }
+        // The post hides 40-50 % of the car where it really is.
+        for k in stalled {
+            let car: Vec<Point> =
+                box_surface(&mut rng, 500, [4.2, 1.8, 1.5]).iter().map(|p| s.truth[0][k].apply(p)).collect();
+            let share = rays[k].hidden_share(&car, OCCLUDER_MARGIN_M).expect("the car is in view");
+            assert!((0.25..0.6).contains(&share), "frame {k}: {share:.2} hidden");
+        }
     }
 
     #[test]

@@ -64,6 +64,31 @@ impl SweepRays {
         self.ground.as_ref()?.height_above(&self.fit_to_sensor.apply(point))
     }
 
+    /// The share of `points` (fit coordinates: a body's model where it is thought to be) that
+    /// the sweep shows hidden behind something else: the ray nearest a point's direction ended
+    /// at least `margin_m` nearer than the nearest of all the points, so the return is not the
+    /// body's own near side. Points no ray passed near are left out; `None` when none is left.
+    pub fn hidden_share(&self, points: &[Point], margin_m: f32) -> Option<f32> {
+        let in_sensor: Vec<Point> = points.iter().map(|p| self.fit_to_sensor.apply(p)).collect();
+        let range = |p: &Point| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        let nearest_m = in_sensor.iter().map(range).filter(|r| r.is_finite()).fold(f32::INFINITY, f32::min);
+        let max_chord2 = MAX_RAY_ANGLE_RAD * MAX_RAY_ANGLE_RAD;
+        let (mut rayed, mut hidden) = (0usize, 0usize);
+        for p in &in_sensor {
+            let r = range(p);
+            if !r.is_finite() || r <= 1e-3 {
+                continue;
+            }
+            if let Some(hit) = self.directions.nearest(&[p[0] / r, p[1] / r, p[2] / r])
+                && hit.dist2 <= max_chord2
+            {
+                rayed += 1;
+                hidden += usize::from(self.ranges_m[hit.index] <= nearest_m - margin_m);
+            }
+        }
+        (rayed > 0).then(|| hidden as f32 / rayed as f32)
+    }
+
     /// How the sensor saw `point` (fit coordinates), with the ray nearest its direction and a
     /// margin `margin_m` on the ray's range.
     pub fn sight(&self, point: &Point, margin_m: f32) -> Sight {
@@ -133,5 +158,33 @@ mod tests {
         // Above the field of view (0.1 rad, and the margin of a ray's reach) and behind the sensor.
         assert_eq!(rays.sight(&at(10.0, 0.0, 0.3), 0.3), Sight::Unknown);
         assert_eq!(rays.sight(&at(10.0, 3.1, 0.0), 0.3), Sight::Unknown);
+    }
+
+    #[test]
+    fn the_hidden_share_counts_what_something_nearer_than_the_whole_body_hides() {
+        let origin = [3.0, -2.0, 1.0];
+        let (points, pose) = wall_with_post(origin);
+        let rays = SweepRays::new(&points, &pose);
+        let at = |range_m: f32, az: f32, el: f32| -> Point {
+            let d = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
+            std::array::from_fn(|c| range_m * d[c] + origin[c] as f32)
+        };
+        // A body 10-12 m out across azimuths -0.3..0.3 rad: the post (5 m) hides the third of
+        // its directions within 0.1 rad of the axis; every point has a ray.
+        let body: Vec<Point> =
+            (-30..=30).flat_map(|i| [10.0, 12.0].map(|range_m| at(range_m, i as f32 * 0.01, 0.0))).collect();
+        let share = rays.hidden_share(&body, 0.5).expect("in view");
+        // The same by `sight`: hidden with the margin that reaches 0.5 m before the nearest point.
+        let range = |p: &Point| (0..3).map(|c| (p[c] - origin[c] as f32).powi(2)).sum::<f32>().sqrt();
+        let brute = body.iter().filter(|p| rays.sight(p, range(p) - 9.5) == Sight::Hidden);
+        assert!((share - 21.0 / 61.0).abs() < 0.02, "{share}");
+        assert_eq!((share * body.len() as f32).round() as usize, brute.count());
+        // The wall seen from in front: nothing nearer than the body's own nearest point hides
+        // its far part (a body 19.5-20 m out, part of it behind its own front, none of it
+        // behind the post's directions).
+        let own: Vec<Point> = (20..=30).flat_map(|i| [19.5, 19.9].map(|r| at(r, i as f32 * 0.01, 0.0))).collect();
+        assert_eq!(rays.hidden_share(&own, 0.5), Some(0.0));
+        // Nothing in view.
+        assert_eq!(rays.hidden_share(&[at(10.0, 3.1, 0.0)], 0.5), None);
     }
 }
