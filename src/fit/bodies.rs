@@ -580,8 +580,10 @@ impl BodyTrack {
     /// (`forward`) or its start. The first step is `first_guess` when given, else constant
     /// velocity from `previous`, the pose of the frame before `from` along the chain. `centre`
     /// is where the body's step is measured (model coordinates). With `trust_prediction`, a
-    /// registration that falls behind a steady prediction by more than
-    /// [`reach_from_prediction_m`] is set aside (the frame is `doubted`, not observed).
+    /// registration of a steady vehicle ([`STEADY_FRAMES`], [`MIN_DOUBT_SPEED_M_S`]) that falls
+    /// behind its prediction by more than [`reach_from_prediction_m`] where something nearer
+    /// hides part of it ([`MIN_HIDDEN_SHARE`]) is set aside: the frame is `doubted`, not
+    /// observed.
     fn follow(
         &mut self,
         s: &Scene<'_>,
