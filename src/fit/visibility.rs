@@ -47,7 +47,7 @@ impl SweepRays {
         let mut unit = Vec::with_capacity(sensor_points.len());
         let mut ranges_m = Vec::with_capacity(sensor_points.len());
         for p in sensor_points {
-            let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+            let r = range_m(p);
             if r.is_finite() && r > 1e-3 {
                 unit.push([p[0] / r, p[1] / r, p[2] / r]);
                 ranges_m.push(r);
@@ -70,49 +70,43 @@ impl SweepRays {
     /// body's own near side. Points no ray passed near are left out; `None` when none is left.
     pub fn hidden_share(&self, points: &[Point], margin_m: f32) -> Option<f32> {
         let in_sensor: Vec<Point> = points.iter().map(|p| self.fit_to_sensor.apply(p)).collect();
-        let range = |p: &Point| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-        let nearest_m = in_sensor.iter().map(range).filter(|r| r.is_finite()).fold(f32::INFINITY, f32::min);
-        let max_chord2 = MAX_RAY_ANGLE_RAD * MAX_RAY_ANGLE_RAD;
+        let nearest_m = in_sensor.iter().map(range_m).filter(|r| r.is_finite()).fold(f32::INFINITY, f32::min);
         let (mut rayed, mut hidden) = (0usize, 0usize);
-        for p in &in_sensor {
-            let r = range(p);
-            if !r.is_finite() || r <= 1e-3 {
-                continue;
-            }
-            if let Some(hit) = self.directions.nearest(&[p[0] / r, p[1] / r, p[2] / r])
-                && hit.dist2 <= max_chord2
-            {
-                rayed += 1;
-                hidden += usize::from(self.ranges_m[hit.index] <= nearest_m - margin_m);
-            }
+        for (_, ray_m) in in_sensor.iter().filter_map(|p| self.ray_towards(p)) {
+            rayed += 1;
+            hidden += usize::from(ray_m <= nearest_m - margin_m);
         }
         (rayed > 0).then(|| hidden as f32 / rayed as f32)
+    }
+
+    /// The range of `p` (sensor coordinates) and of the return of the ray nearest its
+    /// direction, when one lies within [`MAX_RAY_ANGLE_RAD`] of it.
+    fn ray_towards(&self, p: &Point) -> Option<(f32, f32)> {
+        let r = range_m(p);
+        if !r.is_finite() || r <= 1e-3 {
+            return None;
+        }
+        // Chord length on the unit sphere: the angle for small angles.
+        let max_chord2 = MAX_RAY_ANGLE_RAD * MAX_RAY_ANGLE_RAD;
+        let hit = self.directions.nearest(&[p[0] / r, p[1] / r, p[2] / r])?;
+        (hit.dist2 <= max_chord2).then(|| (r, self.ranges_m[hit.index]))
     }
 
     /// How the sensor saw `point` (fit coordinates), with the ray nearest its direction and a
     /// margin `margin_m` on the ray's range.
     pub fn sight(&self, point: &Point, margin_m: f32) -> Sight {
-        let p = self.fit_to_sensor.apply(point);
-        let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-        if !r.is_finite() || r <= 1e-3 {
-            return Sight::Unknown;
-        }
-        // Chord length on the unit sphere: the angle for small angles.
-        let max_chord2 = MAX_RAY_ANGLE_RAD * MAX_RAY_ANGLE_RAD;
-        match self.directions.nearest(&[p[0] / r, p[1] / r, p[2] / r]) {
-            Some(hit) if hit.dist2 <= max_chord2 => {
-                let range_m = self.ranges_m[hit.index];
-                if range_m <= r - margin_m {
-                    Sight::Hidden
-                } else if range_m >= r + margin_m {
-                    Sight::Passed
-                } else {
-                    Sight::Seen
-                }
-            }
-            _ => Sight::Unknown,
+        match self.ray_towards(&self.fit_to_sensor.apply(point)) {
+            Some((r, range_m)) if range_m <= r - margin_m => Sight::Hidden,
+            Some((r, range_m)) if range_m >= r + margin_m => Sight::Passed,
+            Some(_) => Sight::Seen,
+            None => Sight::Unknown,
         }
     }
+}
+
+/// Distance (m) of `p` from the origin.
+fn range_m(p: &Point) -> f32 {
+    (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt()
 }
 
 #[cfg(test)]
