@@ -1044,11 +1044,23 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
         // A sparse seed is a few far points: the sensor must also have clearly seen through the
-        // place it left.
-        && s.rays.is_none_or(|r| {
-            let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
-            !place.still_occupied() && ((c < s.dense[k] && !flat) || place.clearly_left())
-        });
+        // place it left. Without that evidence from the rays, the body's own registrations must
+        // at least move as a road user can: a wall slab whose visible part (between nearer
+        // things that hide the rest) moved with the sensor sped up to 13 m/s and stopped within
+        // a few frames (held-out seed 166).
+        && {
+            let accelerates_plausibly =
+                || !implausible_acceleration(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation));
+            match s.rays {
+                None => accelerates_plausibly(),
+                Some(r) => {
+                    let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
+                    !place.still_occupied()
+                        && (place.clearly_left()
+                            || (c < s.dense[k] && !flat && accelerates_plausibly()))
+                }
+            }
+        };
     Tracked { body, clusters: clusters_on_body, crossed, moving, would_doubt }
 }
 
@@ -1143,6 +1155,47 @@ fn implausible_start_or_stop(
         }
     }
     false
+}
+
+/// Frame gaps (each side of a frame) over which [`implausible_acceleration`] compares the
+/// velocities before and after it: two frames and more, as one frame's registration scatter
+/// (a decimetre) is a velocity change of 2 m/s.
+const ACCEL_GAPS: std::ops::RangeInclusive<usize> = 2..=4;
+
+/// Whether the body's motion (`poses`: model -> each frame, measured at the model's `centre`, at
+/// the `observed` frames) changes its velocity faster than a road user can brake or speed up
+/// ([`MAX_START_STOP_ACCEL_M_S2`]; a turning car's sideways acceleration is within it too). For
+/// a frame seen with the frames `g` before and after it ([`ACCEL_GAPS`]), the position after is
+/// predicted from the velocity before; at an acceleration of at most `a`, it lies within
+/// `a (t2 - t1) (t2 - t0) / 2` of that prediction (`t0`, `t1`, `t2`: the three frames' times),
+/// give or take [`START_STOP_SLACK_M`] of registration scatter. A wall slab whose visible part
+/// moved with the sensor (docs/benchmarks.md section 46: 13 m/s to standing within 0.3 s) breaks
+/// that; a car braking hard, or making a U-turn, does not. `seconds_per_unit` converts `times`.
+fn implausible_acceleration(
+    poses: &[Rigid],
+    observed: &[bool],
+    times: &[f64],
+    centre: [f64; 3],
+    seconds_per_unit: f64,
+) -> bool {
+    let at = |j: usize| poses[j].apply_f64(centre);
+    ACCEL_GAPS.into_iter().any(|gap| {
+        (gap..poses.len().saturating_sub(gap)).any(|j| {
+            let (before, after) = (j - gap, j + gap);
+            if !(observed[before] && observed[j] && observed[after]) {
+                return false;
+            }
+            let [t0, t1, t2] = [before, j, after].map(|i| times[i] * seconds_per_unit);
+            if t1 <= t0 || t2 <= t1 {
+                return false;
+            }
+            let (p0, p1, p2) = (at(before), at(j), at(after));
+            let ahead = (t2 - t1) / (t1 - t0);
+            let predicted = [0, 1].map(|i| p1[i] + (p1[i] - p0[i]) * ahead);
+            let off_m = (p2[0] - predicted[0]).hypot(p2[1] - predicted[1]);
+            off_m > 0.5 * MAX_START_STOP_ACCEL_M_S2 * (t2 - t1) * (t2 - t0) + START_STOP_SLACK_M
+        })
+    })
 }
 
 /// Seconds per unit of a sequence's times, from its extrapolation horizon (in those units:
@@ -3361,6 +3414,54 @@ mod tests {
         let times: Vec<f64> = (0..25).map(|k| k as f64).collect();
         let poses: Vec<Rigid> = (0..25).map(|k| planar(if k < 10 { 0.0 } else { 1.2 }, 0.0, 0.0)).collect();
         assert!(implausible_start_or_stop(&poses, &[true; 25], &times, [0.0; 3], seconds_per_unit(30.0)));
+    }
+
+    #[test]
+    fn a_velocity_changing_faster_than_a_road_user_can_brake_is_implausible() {
+        // Frames at 10 Hz; `xy(t)` is the body's centre (m) at time t (s).
+        let judge_seen = |xy: &dyn Fn(f64) -> [f64; 2], observed: &[bool]| {
+            let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+            let poses: Vec<Rigid> = times
+                .iter()
+                .map(|&t| {
+                    let [x, y] = xy(t);
+                    planar(x, y, 0.0)
+                })
+                .collect();
+            implausible_acceleration(&poses, observed, &times, [0.0; 3], 1.0)
+        };
+        let judge = |xy: &dyn Fn(f64) -> [f64; 2]| judge_seen(xy, &[true; 25]);
+        // Held-out seed 166's wall slab: 1.25 m a frame, then standing within three frames.
+        let slab = |t: f64| {
+            let stopping_s = (t - 1.0).clamp(0.0, 0.3);
+            [-24.9, 12.5 * t.min(1.0) + 12.5 * stopping_s - 12.5 / 0.6 * stopping_s * stopping_s]
+        };
+        assert!(judge(&slab));
+        // The same with its stopping frames unseen for a second: the frames seen cannot tell.
+        let mut gap = [true; 25];
+        gap[6..18].iter_mut().for_each(|o| *o = false);
+        assert!(!judge_seen(&slab, &gap));
+        // A car braking at 9 m/s^2 from 12 m/s to a stop, and one speeding up at 4 m/s^2.
+        assert!(!judge(&|t: f64| [if t < 4.0 / 3.0 { 12.0 * t - 4.5 * t * t } else { 8.0 }, 0.0]));
+        assert!(!judge(&|t: f64| [0.0, 2.0 * t * t]));
+        // A car making a U-turn at 6 m/s on a 5 m radius (7.2 m/s^2 sideways).
+        assert!(!judge(&|t: f64| {
+            let a = t * 6.0 / 5.0;
+            [5.0 * a.sin(), -5.0 * a.cos()]
+        }));
+        // Registration scatter of a decimetre on a car driving on at 10 m/s.
+        assert!(!judge(&|t: f64| [10.0 * t + if (10.0 * t).round() as i64 % 2 == 0 { 0.1 } else { -0.1 }, 0.0]));
+        // A slide of a metre within one frame in the middle of a walk: no pedestrian does that.
+        assert!(judge(&|t: f64| [1.4 * t + if t > 1.05 { 1.0 } else { 0.0 }, 0.0]));
+        // Frame indices for times (no timestamps): the slab, judged at 10 Hz.
+        let times: Vec<f64> = (0..25).map(|k| k as f64).collect();
+        let poses: Vec<Rigid> = (0..25)
+            .map(|k| {
+                let [x, y] = slab(0.1 * k as f64);
+                planar(x, y, 0.0)
+            })
+            .collect();
+        assert!(implausible_acceleration(&poses, &[true; 25], &times, [0.0; 3], seconds_per_unit(30.0)));
     }
 
     #[test]
