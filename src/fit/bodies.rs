@@ -1044,23 +1044,25 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
         // A sparse seed is a few far points: the sensor must also have clearly seen through the
-        // place it left. Without that evidence from the rays, the body's own registrations must
-        // at least move as a road user can: a wall slab whose visible part (between nearer
-        // things that hide the rest) moved with the sensor sped up to 13 m/s and stopped within
-        // a few frames (held-out seed 166).
-        && {
-            let accelerates_plausibly =
-                || !implausible_acceleration(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation));
-            match s.rays {
-                None => accelerates_plausibly(),
-                Some(r) => {
-                    let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
-                    !place.still_occupied()
-                        && (place.clearly_left()
-                            || (c < s.dense[k] && !flat && accelerates_plausibly()))
-                }
-            }
-        };
+        // place it left. A dense seed the rays did not clearly see leave must at least move as a
+        // road user can: a wall slab whose visible part (between nearer things that hide the
+        // rest) moved with the sensor sped up to 13 m/s and stopped within a few frames
+        // (held-out seed 166). Not a test on its own: a real car's registration scatter over
+        // 0.2 s breaks it now and then (docs/benchmarks.md section 46).
+        && s.rays.is_none_or(|r| {
+            let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
+            !place.still_occupied()
+                && (place.clearly_left()
+                    || (c < s.dense[k]
+                        && !flat
+                        && !implausible_acceleration(
+                            &poses,
+                            &body.observed,
+                            s.times,
+                            centre,
+                            seconds_per_unit(s.max_extrapolation),
+                        )))
+        });
     Tracked { body, clusters: clusters_on_body, crossed, moving, would_doubt }
 }
 
