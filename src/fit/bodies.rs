@@ -976,10 +976,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
     }
     let travel_m = (0..t)
         .filter(|&j| observed[j])
-        .map(|j| {
-            let p = poses[j].apply_f64(centre);
-            (0..3).map(|i| (p[i] - centre[i]).powi(2)).sum::<f64>().sqrt()
-        })
+        .map(|j| (0..3).map(|i| (centres[j][i] - centre[i]).powi(2)).sum::<f64>().sqrt())
         .fold(0.0, f64::max);
     // The body frame: origin at the model's centre, x along the direction of travel.
     let heading = travel_heading(poses, k, centre);
@@ -1028,6 +1025,8 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
             h.dist2 <= RAY_MARGIN_M * RAY_MARGIN_M && label >= 0 && s.taken[j][label as usize]
         })
     };
+    // The frames' times in seconds, for the tests of what a road user can do.
+    let times_s: Vec<f64> = s.times.iter().map(|&time| time * seconds_per_unit(s.max_extrapolation)).collect();
     let moving = plausible
         && seen >= need_seen
         && smooth
@@ -1039,7 +1038,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
         // A slide along a parked car's flank stays within the car's length; a real car whose
         // early, far frames the tracking held back before it caught up travels on.
         && (travel_m >= MAX_SLIDE_M
-            || !implausible_start_or_stop(&poses, &body.observed, s.times, centre, seconds_per_unit(s.max_extrapolation)))
+            || !implausible_start_or_stop(&centres, &body.observed, &times_s))
         // Evidence from outside the body's own registrations, last as it costs the most: the
         // sensor must no longer find the seed's points in the place the body is said to have
         // left. A parked car or a wall the registrations slid along is still seen there.
@@ -1053,15 +1052,7 @@ fn track_body(k: usize, c: usize, probe: usize, first: Rigid, s: &Scene<'_>, tru
             let place = PlaceTallies::new(&src, k, &poses, centre, &model_tree, r, &on_other_body);
             !place.still_occupied()
                 && (place.clearly_left()
-                    || (c < s.dense[k]
-                        && !flat
-                        && !implausible_acceleration(
-                            &poses,
-                            &body.observed,
-                            s.times,
-                            centre,
-                            seconds_per_unit(s.max_extrapolation),
-                        )))
+                    || (c < s.dense[k] && !flat && !implausible_acceleration(&centres, &body.observed, &times_s)))
         });
     Tracked { body, clusters: clusters_on_body, crossed, moving, would_doubt }
 }
@@ -1111,22 +1102,17 @@ const START_STOP_FRAMES: usize = 4;
 /// frames were registered standing (seed 106: 4.8-9.7 m).
 const MAX_SLIDE_M: f64 = 4.0;
 
-/// Whether the body's smooth motion (`poses`: model -> each frame, measured at the model's
-/// `centre`) stands in one place for a while and leaves it, or arrives at it, faster than a
+/// Whether the body's smooth motion (`centres`: its centre at each frame, fit coordinates)
+/// stands in one place for a while and leaves it, or arrives at it, faster than a
 /// road user can start or stop: from standing, a body covers at most
 /// `a t^2 / 2` ([`MAX_START_STOP_ACCEL_M_S2`], plus [`START_STOP_SLACK_M`]) in `t`. A parked
 /// car whose registrations slid along its flank while the sensor passed and then stood again
 /// (docs/benchmarks.md section 35: 1.2 m within two frames, then 14 frames standing) does; a
-/// car at a light or a pedestrian who stops does not. `seconds_per_unit` converts `times`.
-fn implausible_start_or_stop(
-    poses: &[Rigid],
-    observed: &[bool],
-    times: &[f64],
-    centre: [f64; 3],
-    seconds_per_unit: f64,
-) -> bool {
-    let seen: Vec<usize> = (0..poses.len()).filter(|&j| observed[j]).collect();
-    let at: Vec<[f64; 3]> = seen.iter().map(|&j| poses[j].apply_f64(centre)).collect();
+/// car at a light or a pedestrian who stops does not. Judged at the `observed` frames, whose
+/// times are `times_s` (s).
+fn implausible_start_or_stop(centres: &[[f64; 3]], observed: &[bool], times_s: &[f64]) -> bool {
+    let seen: Vec<usize> = (0..centres.len()).filter(|&j| observed[j]).collect();
+    let at: Vec<[f64; 3]> = seen.iter().map(|&j| centres[j]).collect();
     let dist = |a: [f64; 3], b: [f64; 3]| (a[0] - b[0]).hypot(a[1] - b[1]);
     let mut first = 0;
     while first < seen.len() {
@@ -1144,7 +1130,7 @@ fn implausible_start_or_stop(
                         break;
                     }
                     let i = i as usize;
-                    let dt_s = (times[seen[i]] - times[seen[edge]]).abs() * seconds_per_unit;
+                    let dt_s = (times_s[seen[i]] - times_s[seen[edge]]).abs();
                     let reach_m = 0.5 * MAX_START_STOP_ACCEL_M_S2 * dt_s * dt_s + START_STOP_SLACK_M;
                     if dist(at[i], at[edge]) > reach_m {
                         return true;
@@ -1164,34 +1150,27 @@ fn implausible_start_or_stop(
 /// (a decimetre) is a velocity change of 2 m/s.
 const ACCEL_GAPS: std::ops::RangeInclusive<usize> = 2..=4;
 
-/// Whether the body's motion (`poses`: model -> each frame, measured at the model's `centre`, at
-/// the `observed` frames) changes its velocity faster than a road user can brake or speed up
+/// Whether the body's motion (`centres`: its centre at each frame, fit coordinates, judged at the
+/// `observed` frames, whose times are `times_s` in s) changes its velocity faster than a road user can brake or speed up
 /// ([`MAX_START_STOP_ACCEL_M_S2`]; a turning car's sideways acceleration is within it too). For
 /// a frame seen with the frames `g` before and after it ([`ACCEL_GAPS`]), the position after is
 /// predicted from the velocity before; at an acceleration of at most `a`, it lies within
 /// `a (t2 - t1) (t2 - t0) / 2` of that prediction (`t0`, `t1`, `t2`: the three frames' times),
 /// give or take [`START_STOP_SLACK_M`] of registration scatter. A wall slab whose visible part
 /// moved with the sensor (docs/benchmarks.md section 46: 13 m/s to standing within 0.3 s) breaks
-/// that; a car braking hard, or making a U-turn, does not. `seconds_per_unit` converts `times`.
-fn implausible_acceleration(
-    poses: &[Rigid],
-    observed: &[bool],
-    times: &[f64],
-    centre: [f64; 3],
-    seconds_per_unit: f64,
-) -> bool {
-    let at = |j: usize| poses[j].apply_f64(centre);
+/// that; a car braking hard, or making a U-turn, does not.
+fn implausible_acceleration(centres: &[[f64; 3]], observed: &[bool], times_s: &[f64]) -> bool {
     ACCEL_GAPS.into_iter().any(|gap| {
-        (gap..poses.len().saturating_sub(gap)).any(|j| {
+        (gap..centres.len().saturating_sub(gap)).any(|j| {
             let (before, after) = (j - gap, j + gap);
             if !(observed[before] && observed[j] && observed[after]) {
                 return false;
             }
-            let [t0, t1, t2] = [before, j, after].map(|i| times[i] * seconds_per_unit);
+            let [t0, t1, t2] = [before, j, after].map(|i| times_s[i]);
             if t1 <= t0 || t2 <= t1 {
                 return false;
             }
-            let (p0, p1, p2) = (at(before), at(j), at(after));
+            let (p0, p1, p2) = (centres[before], centres[j], centres[after]);
             let ahead = (t2 - t1) / (t1 - t0);
             let predicted = [0, 1].map(|i| p1[i] + (p1[i] - p0[i]) * ahead);
             let off_m = (p2[0] - predicted[0]).hypot(p2[1] - predicted[1]);
@@ -3390,9 +3369,9 @@ mod tests {
     fn a_standstill_left_or_reached_faster_than_a_road_user_can_is_implausible() {
         // Frames at 10 Hz; `x(t)` is the body's centre along x (m) at time t (s).
         let judge = |x: &dyn Fn(f64) -> f64| {
-            let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
-            let poses: Vec<Rigid> = times.iter().map(|&t| planar(x(t), 0.0, 0.0)).collect();
-            implausible_start_or_stop(&poses, &[true; 25], &times, [0.0; 3], 1.0)
+            let times_s: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+            let centres: Vec<[f64; 3]> = times_s.iter().map(|&t| [x(t), 0.0, 0.0]).collect();
+            implausible_start_or_stop(&centres, &[true; 25], &times_s)
         };
         // A parked car whose registrations slid 1.2 m within two frames, then stood.
         assert!(judge(&|t| if t < 1.0 {
@@ -3413,24 +3392,24 @@ mod tests {
         // Standing throughout.
         assert!(!judge(&|_| 3.0));
         // Frame indices for times (no timestamps): the same jump, judged at 10 Hz.
-        let times: Vec<f64> = (0..25).map(|k| k as f64).collect();
-        let poses: Vec<Rigid> = (0..25).map(|k| planar(if k < 10 { 0.0 } else { 1.2 }, 0.0, 0.0)).collect();
-        assert!(implausible_start_or_stop(&poses, &[true; 25], &times, [0.0; 3], seconds_per_unit(30.0)));
+        let times_s: Vec<f64> = (0..25).map(|k| k as f64 * seconds_per_unit(30.0)).collect();
+        let centres: Vec<[f64; 3]> = (0..25).map(|k| [if k < 10 { 0.0 } else { 1.2 }, 0.0, 0.0]).collect();
+        assert!(implausible_start_or_stop(&centres, &[true; 25], &times_s));
     }
 
     #[test]
     fn a_velocity_changing_faster_than_a_road_user_can_brake_is_implausible() {
         // Frames at 10 Hz; `xy(t)` is the body's centre (m) at time t (s).
         let judge_seen = |xy: &dyn Fn(f64) -> [f64; 2], observed: &[bool]| {
-            let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
-            let poses: Vec<Rigid> = times
+            let times_s: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
+            let centres: Vec<[f64; 3]> = times_s
                 .iter()
                 .map(|&t| {
                     let [x, y] = xy(t);
-                    planar(x, y, 0.0)
+                    [x, y, 0.0]
                 })
                 .collect();
-            implausible_acceleration(&poses, observed, &times, [0.0; 3], 1.0)
+            implausible_acceleration(&centres, observed, &times_s)
         };
         let judge = |xy: &dyn Fn(f64) -> [f64; 2]| judge_seen(xy, &[true; 25]);
         // Held-out seed 166's wall slab: 1.25 m a frame, then standing within three frames.
@@ -3456,14 +3435,14 @@ mod tests {
         // A slide of a metre within one frame in the middle of a walk: no pedestrian does that.
         assert!(judge(&|t: f64| [1.4 * t + if t > 1.05 { 1.0 } else { 0.0 }, 0.0]));
         // Frame indices for times (no timestamps): the slab, judged at 10 Hz.
-        let times: Vec<f64> = (0..25).map(|k| k as f64).collect();
-        let poses: Vec<Rigid> = (0..25)
+        let times_s: Vec<f64> = (0..25).map(|k| k as f64 * seconds_per_unit(30.0)).collect();
+        let centres: Vec<[f64; 3]> = (0..25)
             .map(|k| {
                 let [x, y] = slab(0.1 * k as f64);
-                planar(x, y, 0.0)
+                [x, y, 0.0]
             })
             .collect();
-        assert!(implausible_acceleration(&poses, &[true; 25], &times, [0.0; 3], seconds_per_unit(30.0)));
+        assert!(implausible_acceleration(&centres, &[true; 25], &times_s));
     }
 
     #[test]
