@@ -1163,8 +1163,9 @@ fn implausible_start_or_stop(centres: &[[f64; 3]], observed: &[bool], times_s: &
 const ACCEL_GAPS: std::ops::RangeInclusive<usize> = 2..=4;
 
 /// Whether the body's motion (`centres`: its centre at each frame, fit coordinates, judged at the
-/// `observed` frames, whose times are `times_s` in s) changes its velocity faster than a road user can brake or speed up
-/// ([`MAX_START_STOP_ACCEL_M_S2`]; a turning car's sideways acceleration is within it too). For
+/// `observed` frames, whose times are `times_s` in s) changes its velocity faster than a road
+/// user can brake or speed up ([`MAX_START_STOP_ACCEL_M_S2`]; a turning car's sideways
+/// acceleration is within it too). For
 /// a frame seen with the frames `g` before and after it ([`ACCEL_GAPS`]), the position after is
 /// predicted from the velocity before; at an acceleration of at most `a`, it lies within
 /// `a (t2 - t1) (t2 - t0) / 2` of that prediction (`t0`, `t1`, `t2`: the three frames' times),
@@ -2078,15 +2079,16 @@ fn angle_diff(a: f64, b: f64) -> f64 {
 /// x, y (and the heading of slow bodies) are quadratics in time, fitted locally to the
 /// [`SMOOTH_NEIGHBOURS`] observed frames nearest in time (a turn that starts or ends inside the
 /// sequence is no single quadratic); the height of every frame is a local straight line through
-/// twice as many. An observed frame
-/// whose centre lies farther than `outlier_m` from the fit of its neighbours (itself left out)
-/// is an outlier and takes the position of the fit of its inlying neighbours; the other observed
-/// frames keep their registered position. An outlier that the fit of the inliers alone holds
-/// within `outlier_m` is an inlier of the motion again (but not one of the frames returned). Outside the observed span, the motion at its end
+/// twice as many. An observed frame whose centre lies farther than `outlier_m` from the fit of
+/// its neighbours (itself left out) is an outlier and takes the position of the fit of its
+/// inlying neighbours; the other observed frames keep their registered position. An outlier
+/// that the fit of the inliers alone holds within `outlier_m` is an inlier of the motion again
+/// (but not one of the frames returned). Outside the observed span, the motion at its end
 /// continues at constant speed and turn rate (the path's curvature at the end, at most a
 /// [`MIN_TURN_RADIUS_M`] circle; no turn, along the line, for a body whose centres kept to one
 /// straight line while seen: [`straight_road`]) for at most `max_extrapolation` (in the units
-/// of `times`), and is held after that. Needs four observed frames; with fewer the poses stay as tracked.
+/// of `times`), and is held after that. Needs four observed frames; with fewer the poses stay
+/// as tracked.
 ///
 /// Two more rules for a vehicle (at least [`VEHICLE_MIN_STEP_M`] a frame), whose sparse far
 /// sweeps register least well: when its centres keep to one straight road ([`road_line`]), the
@@ -2098,10 +2100,10 @@ fn angle_diff(a: f64, b: f64) -> f64 {
 /// one point each, none regained).
 ///
 /// For the `final_pass` (the body's motion as the model keeps it), x and y of a vehicle at the
-/// edges of the observed span, where the motion past them starts, are a straight line at constant speed
-/// unless the quadratics fit significantly better ([`steady_unless_curving`]). The passes whose
-/// motion only guides where to look for the body again keep the quadratics: with the line
-/// there, seed 158's crossing car was looked for in the wrong place and lost
+/// edges of the observed span, where the motion past them starts, are a straight line at
+/// constant speed unless the quadratics fit significantly better ([`steady_unless_curving`]).
+/// The passes whose motion only guides where to look for the body again keep the quadratics:
+/// with the line there, seed 158's crossing car was looked for in the wrong place and lost
 /// (docs/benchmarks.md section 48).
 ///
 /// Returns the observed frames that the fit of the others holds within `outlier_m` and that
@@ -2775,6 +2777,19 @@ mod tests {
         }
     }
 
+    /// `truth` with each pose moved by up to `jitter_m` in x and in y: registrations' scatter.
+    fn jittered(truth: &[Rigid], rng: &mut ChaCha8Rng, jitter_m: f64) -> Vec<Rigid> {
+        truth
+            .iter()
+            .map(|p| {
+                let mut q = *p;
+                q.translation[0] += rng.random_range(-jitter_m..jitter_m);
+                q.translation[1] += rng.random_range(-jitter_m..jitter_m);
+                q
+            })
+            .collect()
+    }
+
     /// Frame 24 of a car seen in frames 0-12 (10 Hz) and carried on from there, how far (m)
     /// from where `centre_at` (seconds) puts it, for registrations off by up to 8 cm (seeded).
     fn end_error_after_carrying_on(seed: u64, centre_at: &dyn Fn(f64) -> (f64, f64)) -> f64 {
@@ -2787,15 +2802,7 @@ mod tests {
                 planar(x, y, (y_next - y).atan2(x_next - x))
             })
             .collect();
-        let mut poses: Vec<Rigid> = truth
-            .iter()
-            .map(|p| {
-                let mut q = *p;
-                q.translation[0] += rng.random_range(-0.08..0.08);
-                q.translation[1] += rng.random_range(-0.08..0.08);
-                q
-            })
-            .collect();
+        let mut poses = jittered(&truth, &mut rng, 0.08);
         let mut observed = vec![true; 25];
         observed[13..].fill(false);
         smooth_poses(&mut poses, &observed, &[], &times, 3.0, [0.0; 3], 0.3, true);
@@ -2834,15 +2841,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let times: Vec<f64> = (0..25).map(|k| 0.1 * k as f64).collect();
         let truth: Vec<Rigid> = times.iter().map(|&t| planar(5.0 + 1.2 * t, 2.0 + 0.5 * t, 0.4)).collect();
-        let mut poses: Vec<Rigid> = truth
-            .iter()
-            .map(|p| {
-                let mut q = *p;
-                q.translation[0] += rng.random_range(-0.08..0.08);
-                q.translation[1] += rng.random_range(-0.08..0.08);
-                q
-            })
-            .collect();
+        let mut poses = jittered(&truth, &mut rng, 0.08);
         let mut observed = vec![true; 25];
         // Walked out of view after frame 17: carried on along the line.
         observed[18..].fill(false);
