@@ -722,7 +722,7 @@ impl BodyTrack {
         let mut registered = self.poses.clone();
         let mut centre = centroid(&self.model);
         self.smooth(s, centre, false);
-        for _ in 0..REACQUIRE_ROUNDS {
+        for round in 0..REACQUIRE_ROUNDS {
             let mut found = false;
             for j in 0..t {
                 let near_seen =
@@ -765,8 +765,12 @@ impl BodyTrack {
                 break;
             }
             centre = centroid(&self.model);
-            self.poses.clone_from(&registered);
-            self.smooth(s, centre, false);
+            // The next round looks where this motion puts the body; after the last round only
+            // the final motion below is needed.
+            if round + 1 < REACQUIRE_ROUNDS {
+                self.poses.clone_from(&registered);
+                self.smooth(s, centre, false);
+            }
         }
         // Once more from the registrations, as the final motion (its edges carried on steadily
         // unless the body visibly accelerates or turns there: `steady_unless_curving`).
@@ -1832,16 +1836,15 @@ fn poly_fit(xs: &[f64], ys: &[f64], degree: usize) -> Vec<f64> {
     (0..n).map(|i| a[i][n] / a[i][i]).collect()
 }
 
-/// The quadratics in time (coefficients in powers of `xs`) of a body's centres `px`, `py`, or
-/// the straight line at constant speed through them (the quadratic terms zero) when the
-/// quadratics do not fit them significantly better: an F-test of both coordinates together at
+/// The `quadratic`s in time (coefficients in powers of `xs`, as [`poly_fit`] gives them) of a
+/// body's centres `px`, `py`, or the straight line at constant speed through them (the
+/// quadratic terms zero) when the quadratics do not fit them significantly better: an F-test of both coordinates together at
 /// [`CURVING_SIGNIFICANCE`]. A car's registrations scatter by a few centimetres; the slope of a
 /// quadratic at the end of eight of them follows that scatter, and carried on for a second
 /// it ends a steady car half a metre off (docs/benchmarks.md section 48). An accelerating or
 /// turning car's quadratic term stands well above the scatter and is kept. Fewer than five
 /// frames leave too few degrees of freedom to tell: the quadratics.
-fn steady_unless_curving(xs: &[f64], px: &[f64], py: &[f64]) -> [Vec<f64>; 2] {
-    let quadratic = [poly_fit(xs, px, 2), poly_fit(xs, py, 2)];
+fn steady_unless_curving(xs: &[f64], px: &[f64], py: &[f64], quadratic: [Vec<f64>; 2]) -> [Vec<f64>; 2] {
     if xs.len() < 5 {
         return quadratic;
     }
@@ -2175,7 +2178,8 @@ fn smooth_poses(
         // Only for a vehicle: a walker sets off and slows within a second, and the line through
         // its last frames lags its pace (seed 2's pedestrian, section 48).
         let vehicle = quadratic[0][1].hypot(quadratic[1][1]) * frame_gap >= VEHICLE_MIN_STEP_M;
-        let [fx, fy] = if final_pass && at_edge && vehicle { steady_unless_curving(&xs, &px, &py) } else { quadratic };
+        let [fx, fy] =
+            if final_pass && at_edge && vehicle { steady_unless_curving(&xs, &px, &py, quadratic) } else { quadratic };
         Some([fx, fy, poly_fit(&xs, &column(&|j| yaws[j]), 2), poly_fit(&wide_xs, &heights, 1)])
     };
     let off = |c: &[Vec<f64>; 4], j: usize| (c[0][0] - pos[j][0]).hypot(c[1][0] - pos[j][1]);
