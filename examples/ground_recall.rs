@@ -20,6 +20,7 @@ use std::collections::BTreeMap;
 
 use mbnt::geometry::Point;
 use mbnt::geometry::ground::{PreprocessParams, preprocess};
+use mbnt::io::kitti::read_kitti_bin;
 use mbnt::sim::{SimParams, simulate};
 
 /// Width (m) of a range band.
@@ -64,9 +65,9 @@ fn filter_params() -> anyhow::Result<PreprocessParams> {
     Ok(params)
 }
 
-/// Per point of `points`, whether the fit's pre-filter keeps it.
-fn kept_mask(points: &[Point]) -> anyhow::Result<Vec<bool>> {
-    let (kept, _) = preprocess(points, &filter_params()?)?;
+/// Per point of `points`, whether the pre-filter with `params` keeps it.
+fn kept_mask(points: &[Point], params: &PreprocessParams) -> anyhow::Result<Vec<bool>> {
+    let (kept, _) = preprocess(points, params)?;
     let mut mask = vec![false; points.len()];
     for i in kept {
         mask[i as usize] = true;
@@ -81,9 +82,10 @@ fn band_label(b: usize) -> String {
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
+    let params = filter_params()?;
     if args.get(1).map(String::as_str) == Some("--kitti") {
         let dir = std::path::Path::new(args.get(2).map_or("../shared/data/kitti-odometry-00", String::as_str));
-        return kitti(dir);
+        return kitti(dir, &params);
     }
     let seeds: Vec<u64> =
         args.get(1).map_or("168", String::as_str).split(',').map(str::parse).collect::<Result<_, _>>()?;
@@ -93,7 +95,7 @@ fn main() -> anyhow::Result<()> {
     for seed in seeds {
         let sim = simulate(&SimParams::log(seed, frames))?;
         for (k, frame) in sim.frames.iter().enumerate() {
-            let keep = kept_mask(frame)?;
+            let keep = kept_mask(frame, &params)?;
             // Per moving object: its points seen and kept, and the sum of their ranges.
             let mut objects: BTreeMap<u32, (Tally, f32)> = BTreeMap::new();
             for ((p, truth), &kept) in frame.iter().zip(&sim.truth[k]).zip(&keep) {
@@ -132,15 +134,14 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The share of points kept per band in the six KITTI frames of `dir`.
-fn kitti(dir: &std::path::Path) -> anyhow::Result<()> {
+/// The share of points the pre-filter with `params` keeps per band in the six KITTI frames of
+/// `dir`.
+fn kitti(dir: &std::path::Path, params: &PreprocessParams) -> anyhow::Result<()> {
     for k in 0..6 {
         let path = dir.join(format!("{k:06}.bin"));
         let bytes = std::fs::read(&path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        // KITTI's velodyne files: x, y, z, reflectance as little-endian f32.
-        let values: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        let points: Vec<Point> = values.chunks_exact(4).map(|c| [c[0], c[1], c[2]]).collect();
-        let keep = kept_mask(&points)?;
+        let points = read_kitti_bin(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let keep = kept_mask(&points, params)?;
         let mut bands = [Tally::default(); BANDS];
         for (p, &kept) in points.iter().zip(&keep) {
             bands[band(p)].add(kept);
